@@ -1,0 +1,134 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// dmrGenerateShapes: writes the paper's 2D test pairs (section 5.2) as NIfTI: fixed.nii.gz (target) and
+// moving.nii.gz (source); for circle-to-epsilon also fidelity_mesh.vtk, the static "high fidelity" mesh of the
+// comparison (CGAL Delaunay refinement of the target's contour, about --fidelity-nodes nodes).
+#include "dmrSyntheticShapes.h"
+#include "dmrDelaunay2D.h"
+#include "dmrSimplexMesh.h"
+#include "itkContourExtractor2DImageFilter.h"
+#include "itkImageFileWriter.h"
+#include "itkMeshFileWriter.h"
+#include "itksys/SystemTools.hxx"
+#include <iostream>
+
+int
+main(int argc, char * argv[])
+{
+  std::string shape, outputDir;
+  long        fidelityNodes = 100;
+  for (int i = 1; i < argc; ++i)
+  {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h")
+    {
+      std::cout << "usage: dmrGenerateShapes --case epsilon|leaf --output-dir D [--fidelity-nodes N]\n"
+                   "  writes D/fixed.nii.gz (target), D/moving.nii.gz (source) and, for epsilon, D/fidelity_mesh.vtk\n";
+      return EXIT_SUCCESS;
+    }
+    if (i + 1 >= argc)
+    {
+      std::cerr << "dmrGenerateShapes: error: missing value for " << a << '\n';
+      return 2;
+    }
+    const std::string v = argv[++i];
+    if (a == "--case")
+      shape = v;
+    else if (a == "--output-dir")
+      outputDir = v;
+    else if (a == "--fidelity-nodes")
+      fidelityNodes = std::atol(v.c_str());
+    else
+    {
+      std::cerr << "dmrGenerateShapes: error: unknown option " << a << '\n';
+      return 2;
+    }
+  }
+  if ((shape != "epsilon" && shape != "leaf") || outputDir.empty() || fidelityNodes < 8)
+  {
+    std::cerr << "dmrGenerateShapes: error: need --case epsilon|leaf and --output-dir D (see --help)\n";
+    return 2;
+  }
+  try
+  {
+    using namespace itk::dmr;
+    itksys::SystemTools::MakeDirectory(outputDir);
+    ShapeImageType::Pointer fixed, moving;
+    if (shape == "epsilon")
+    {
+      fixed = RenderShape(CircleToEpsilon::Width, CircleToEpsilon::Height, CircleToEpsilon::Target);
+      moving = RenderShape(CircleToEpsilon::Width, CircleToEpsilon::Height, CircleToEpsilon::Source);
+    }
+    else
+    {
+      fixed = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Target);
+      moving = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Source);
+    }
+    auto writer = itk::ImageFileWriter<ShapeImageType>::New();
+    writer->UseCompressionOn();
+    writer->SetInput(fixed);
+    writer->SetFileName(outputDir + "/fixed.nii.gz");
+    writer->Update();
+    writer->SetInput(moving);
+    writer->SetFileName(outputDir + "/moving.nii.gz");
+    writer->Update();
+    std::cout << "wrote " << outputDir << "/fixed.nii.gz (target) and " << outputDir << "/moving.nii.gz (source)\n";
+    if (shape == "epsilon")
+    {
+      auto contours = itk::ContourExtractor2DImageFilter<ShapeImageType>::New();
+      contours->SetInput(fixed);
+      contours->SetContourValue(0.5);
+      contours->Update();
+      std::vector<std::vector<double>> polygons;
+      for (unsigned int c = 0; c < contours->GetNumberOfIndexedOutputs(); ++c)
+      {
+        std::vector<double> poly;
+        for (const auto & v : *contours->GetOutput(c)->GetVertexList())
+        {
+          poly.push_back(v[0]);
+          poly.push_back(v[1]);
+        }
+        polygons.push_back(poly);
+      }
+      SimplexMesh<2>                      mesh;
+      std::vector<std::array<int32_t, 3>> triangles;
+      ContourFidelityMesh2D(polygons, CircleToEpsilon::Width - 1.0, CircleToEpsilon::Height - 1.0,
+                            static_cast<size_t>(fidelityNodes), mesh.nodes, triangles);
+      for (const auto & t : triangles)
+      {
+        mesh.elements.push_back({ t[0], t[1], t[2] });
+      }
+      mesh.OrientPositively();
+      mesh.MarkBorderNodes(Grid<2>::FromImage(fixed.GetPointer()));
+      using MeshType = itk::Mesh<double, 2>;
+      auto itkMesh = ToItkMesh<2, MeshType>(mesh, fixed.GetPointer());
+      auto meshWriter = itk::MeshFileWriter<MeshType>::New();
+      meshWriter->SetInput(itkMesh);
+      meshWriter->SetFileName(outputDir + "/fidelity_mesh.vtk");
+      meshWriter->Update();
+      std::cout << "wrote " << outputDir << "/fidelity_mesh.vtk (" << mesh.NumberOfNodes() << " nodes, "
+                << mesh.elements.size() << " triangles)\n";
+    }
+  }
+  catch (const std::exception & e)
+  {
+    std::cerr << "dmrGenerateShapes: error: " << e.what() << '\n';
+    return 1;
+  }
+  return EXIT_SUCCESS;
+}

@@ -1,0 +1,659 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// itkDynamicMeshRegistration: command-line FEM registration on a dynamic mesh (Cai et al. 2015).
+// Reads any ITK-readable fixed/moving image (NIfTI, MetaImage, ..., or a DICOM series directory) and writes the
+// warped image, the displacement field, its Jacobian determinant, the energy history, the meshes and a JSON report.
+#include "itkFEMRegistrationMethod.h"
+#include "dmrFieldImage.h"
+#include "dmrCudaBackend.h"
+#include "dmrConfigure.h"
+#include "itkImageFileReader.h"
+#include "itkImageFileWriter.h"
+#include "itkImageSeriesReader.h"
+#include "itkGDCMImageIO.h"
+#include "itkGDCMSeriesFileNames.h"
+#include "itkImageIOFactory.h"
+#include "itkMeshFileReader.h"
+#include "itkResampleImageFilter.h"
+#include "itkLinearInterpolateImageFunction.h"
+#include "itkCommand.h"
+#include "itkMultiThreaderBase.h"
+#include "itksys/SystemTools.hxx"
+#include "itksys/Directory.hxx"
+
+#ifdef DMR_WITH_VTK
+#  include <vtkSmartPointer.h>
+#  include <vtkPoints.h>
+#  include <vtkCellArray.h>
+#  include <vtkUnsignedCharArray.h>
+#  include <vtkPointData.h>
+#  include <vtkUnstructuredGrid.h>
+#  include <vtkXMLUnstructuredGridWriter.h>
+#endif
+
+#include <chrono>
+#include <cstdlib>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <map>
+#include <sstream>
+#include <string>
+#include <unistd.h>
+
+namespace
+{
+/** A bad-input error: reported as one line, exit code 2. */
+struct UsageError : std::runtime_error
+{
+  using std::runtime_error::runtime_error;
+};
+
+struct Options
+{
+  std::string  fixed, moving, outputDir, report, mesh{ "dynamic" }, backend{ "auto" };
+  long         nodes{ -1 };
+  long         iterations{ 100 };
+  long         levels{ 3 };
+  long         threads{ 0 };
+  long         saveMeshEvery{ 0 };
+  long         regularSize{ 0 };
+  double       lambda{ 1.0 }, mu{ 1.0 };
+};
+
+const char * const Usage =
+  "usage: itkDynamicMeshRegistration --fixed F --moving M --output-dir D [options]\n"
+  "  FEM deformable registration with a dynamic mesh (Cai, Guo, Zhong, Mao 2015).\n"
+  "  F, M: any ITK-readable image (NIfTI .nii/.nii.gz, .mha, ...) or a DICOM series directory; 2D or 3D.\n"
+  "options:\n"
+  "  --nodes N              mesh nodes (default 100 in 2D, 3000 in 3D)\n"
+  "  --iterations K         registration iterations (default 100)\n"
+  "  --levels L             pyramid levels summed in the MSSD (default 3)\n"
+  "  --mesh MODE            dynamic (default) | regular | a mesh file (e.g. .vtk) used as a static mesh\n"
+  "  --regular-size n       nodes per axis of the regular mesh (default round(N^(1/dim)))\n"
+  "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
+  "  --threads T            worker threads (default: all cores)\n"
+  "  --backend B            auto (default) | cpu | cuda\n"
+  "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
+  "  --report FILE          JSON report (default D/report.json)\n"
+  "  --help, --version\n"
+  "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u),\n"
+  "  jacobian.nii.gz (det of I + grad u), energy.csv, mesh_NNNN.vtu + mesh.pvd, report.json\n";
+
+long
+ParseInteger(const std::string & flag, const std::string & value)
+{
+  char *     end = nullptr;
+  const long v = std::strtol(value.c_str(), &end, 10);
+  if (value.empty() || *end != '\0')
+  {
+    throw UsageError(flag + " expects an integer, got '" + value + "'");
+  }
+  return v;
+}
+
+double
+ParseReal(const std::string & flag, const std::string & value)
+{
+  char *       end = nullptr;
+  const double v = std::strtod(value.c_str(), &end);
+  if (value.empty() || *end != '\0' || !std::isfinite(v))
+  {
+    throw UsageError(flag + " expects a number, got '" + value + "'");
+  }
+  return v;
+}
+
+Options
+ParseArguments(int argc, char * argv[])
+{
+  Options opt;
+  for (int i = 1; i < argc; ++i)
+  {
+    const std::string a = argv[i];
+    if (a == "--help" || a == "-h")
+    {
+      std::cout << Usage;
+      std::exit(EXIT_SUCCESS);
+    }
+    if (a == "--version")
+    {
+      std::cout << "itkDynamicMeshRegistration " << DMR_VERSION_STRING << " (ITK " << ITK_VERSION_STRING
+                << ", CUDA: " << itk::dmr::cuda::DeviceDescription() << ")\n";
+      std::exit(EXIT_SUCCESS);
+    }
+    if (i + 1 >= argc)
+    {
+      throw UsageError("unknown option or missing value: " + a + " (see --help)");
+    }
+    const std::string v = argv[++i];
+    if (a == "--fixed")
+      opt.fixed = v;
+    else if (a == "--moving")
+      opt.moving = v;
+    else if (a == "--output-dir")
+      opt.outputDir = v;
+    else if (a == "--report")
+      opt.report = v;
+    else if (a == "--mesh")
+      opt.mesh = v;
+    else if (a == "--backend")
+      opt.backend = v;
+    else if (a == "--nodes")
+      opt.nodes = ParseInteger(a, v);
+    else if (a == "--iterations")
+      opt.iterations = ParseInteger(a, v);
+    else if (a == "--levels")
+      opt.levels = ParseInteger(a, v);
+    else if (a == "--threads")
+      opt.threads = ParseInteger(a, v);
+    else if (a == "--save-mesh-every")
+      opt.saveMeshEvery = ParseInteger(a, v);
+    else if (a == "--regular-size")
+      opt.regularSize = ParseInteger(a, v);
+    else if (a == "--lambda")
+      opt.lambda = ParseReal(a, v);
+    else if (a == "--mu")
+      opt.mu = ParseReal(a, v);
+    else
+      throw UsageError("unknown option " + a + " (see --help)");
+  }
+  if (opt.fixed.empty() || opt.moving.empty() || opt.outputDir.empty())
+  {
+    throw UsageError("--fixed, --moving and --output-dir are required (see --help)");
+  }
+  if (opt.iterations < 1)
+    throw UsageError("--iterations must be at least 1");
+  if (opt.levels < 1 || opt.levels > 8)
+    throw UsageError("--levels must be between 1 and 8");
+  if (opt.threads < 0)
+    throw UsageError("--threads must be positive");
+  if (opt.saveMeshEvery < 0)
+    throw UsageError("--save-mesh-every must be 0 or positive");
+  if (opt.lambda < 0 || opt.mu <= 0)
+    throw UsageError("--lambda must be >= 0 and --mu > 0");
+  if (opt.backend != "auto" && opt.backend != "cpu" && opt.backend != "cuda")
+    throw UsageError("--backend must be auto, cpu or cuda");
+  if (opt.regularSize != 0 && opt.regularSize < 2)
+    throw UsageError("--regular-size must be at least 2");
+  return opt;
+}
+
+/** Dimension of an image file or DICOM directory, or a UsageError. */
+unsigned int
+ImageDimensionOf(const std::string & path)
+{
+  if (!itksys::SystemTools::FileExists(path))
+  {
+    throw UsageError("no such file or directory: " + path);
+  }
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    auto names = itk::GDCMSeriesFileNames::New();
+    names->SetDirectory(path);
+    if (names->GetSeriesUIDs().empty())
+    {
+      throw UsageError("directory holds no DICOM series: " + path);
+    }
+    return 3;
+  }
+  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
+  if (!io)
+  {
+    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
+  }
+  io->SetFileName(path);
+  io->ReadImageInformation();
+  unsigned int d = io->GetNumberOfDimensions();
+  // a 3D file with a single slice is a 2D image
+  while (d > 2 && io->GetDimensions(d - 1) == 1)
+  {
+    --d;
+  }
+  return d;
+}
+
+template <typename TImage>
+typename TImage::Pointer
+ReadImage(const std::string & path)
+{
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    auto names = itk::GDCMSeriesFileNames::New();
+    names->SetUseSeriesDetails(true);
+    names->SetDirectory(path);
+    const auto uids = names->GetSeriesUIDs();
+    auto       reader = itk::ImageSeriesReader<TImage>::New();
+    reader->SetImageIO(itk::GDCMImageIO::New());
+    reader->SetFileNames(names->GetFileNames(uids.front()));
+    reader->Update();
+    return reader->GetOutput();
+  }
+  auto reader = itk::ImageFileReader<TImage>::New();
+  reader->SetFileName(path);
+  reader->Update();
+  return reader->GetOutput();
+}
+
+template <typename TImage>
+void
+WriteImage(const TImage * image, const std::string & path)
+{
+  auto writer = itk::ImageFileWriter<TImage>::New();
+  writer->SetInput(image);
+  writer->SetFileName(path);
+  writer->UseCompressionOn();
+  writer->Update();
+}
+
+template <unsigned int D, typename TMesh>
+void
+WriteMeshVTU(const TMesh * mesh, const std::string & path)
+{
+#ifdef DMR_WITH_VTK
+  auto points = vtkSmartPointer<vtkPoints>::New();
+  auto fixed = vtkSmartPointer<vtkUnsignedCharArray>::New();
+  fixed->SetName("fixed");
+  for (auto it = mesh->GetPoints()->Begin(); it != mesh->GetPoints()->End(); ++it)
+  {
+    const auto & p = it.Value();
+    points->InsertNextPoint(p[0], p[1], D > 2 ? p[D > 2 ? 2 : 0] : 0.0);
+    double flag = 0.0;
+    mesh->GetPointData(it.Index(), &flag);
+    fixed->InsertNextValue(flag > 0.5 ? 1 : 0);
+  }
+  auto grid = vtkSmartPointer<vtkUnstructuredGrid>::New();
+  grid->SetPoints(points);
+  grid->GetPointData()->AddArray(fixed);
+  for (auto c = mesh->GetCells()->Begin(); c != mesh->GetCells()->End(); ++c)
+  {
+    vtkIdType ids[4];
+    int       k = 0;
+    for (auto p = c.Value()->PointIdsBegin(); p != c.Value()->PointIdsEnd(); ++p)
+    {
+      ids[k++] = static_cast<vtkIdType>(*p);
+    }
+    grid->InsertNextCell(D == 2 ? VTK_TRIANGLE : VTK_TETRA, k, ids);
+  }
+  auto writer = vtkSmartPointer<vtkXMLUnstructuredGridWriter>::New();
+  writer->SetFileName(path.c_str());
+  writer->SetInputData(grid);
+  if (writer->Write() != 1)
+  {
+    throw std::runtime_error("could not write " + path);
+  }
+#else
+  (void)mesh;
+  (void)path;
+#endif
+}
+
+std::string
+JsonEscape(const std::string & s)
+{
+  std::string out;
+  for (char c : s)
+  {
+    if (c == '"' || c == '\\')
+      out += '\\';
+    out += c;
+  }
+  return out;
+}
+
+/** Everything is written into a private staging folder inside the output directory and moved into place only when
+ * the run succeeded, so a failure never leaves half-written outputs. */
+struct Staging
+{
+  std::string dir, stage;
+  bool        createdDir{ false };
+  bool        committed{ false };
+  explicit Staging(const std::string & outputDir)
+    : dir(outputDir)
+  {
+    if (!itksys::SystemTools::FileExists(dir))
+    {
+      createdDir = true;
+    }
+    else if (!itksys::SystemTools::FileIsDirectory(dir))
+    {
+      throw UsageError("--output-dir exists and is not a directory: " + dir);
+    }
+    stage = dir + "/.dmr-partial-" + std::to_string(::getpid());
+    if (!itksys::SystemTools::MakeDirectory(stage))
+    {
+      throw UsageError("cannot create the output directory " + dir);
+    }
+  }
+  std::string
+  Path(const std::string & name) const
+  {
+    return stage + "/" + name;
+  }
+  void
+  Commit()
+  {
+    itksys::Directory listing;
+    listing.Load(stage);
+    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+    {
+      const std::string name = listing.GetFile(i);
+      if (name == "." || name == "..")
+        continue;
+      if (std::rename((stage + "/" + name).c_str(), (dir + "/" + name).c_str()) != 0)
+      {
+        throw std::runtime_error("could not move " + name + " into " + dir);
+      }
+    }
+    itksys::SystemTools::RemoveADirectory(stage);
+    committed = true;
+  }
+  ~Staging()
+  {
+    if (!committed)
+    {
+      itksys::SystemTools::RemoveADirectory(stage);
+      if (createdDir)
+      {
+        itksys::SystemTools::RemoveADirectory(dir);
+      }
+    }
+  }
+};
+
+template <unsigned int D>
+int
+Run(const Options & opt)
+{
+  using ImageType = itk::Image<float, D>;
+  using MethodType = itk::FEMRegistrationMethod<ImageType, ImageType>;
+  using MeshType = typename MethodType::MeshType;
+  const auto tRead = std::chrono::steady_clock::now();
+
+  typename ImageType::Pointer fixed, moving;
+  try
+  {
+    fixed = ReadImage<ImageType>(opt.fixed);
+    moving = ReadImage<ImageType>(opt.moving);
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
+  }
+  const long nodes = opt.nodes > 0 ? opt.nodes : (D == 2 ? 100 : 3000);
+  const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
+  if (opt.nodes != -1 && (opt.nodes < 4 || opt.nodes > pixels))
+  {
+    throw UsageError("--nodes must be between 4 and the number of pixels (" + std::to_string(pixels) + "), got " +
+                     std::to_string(opt.nodes));
+  }
+  for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
+                              std::make_pair(std::string("moving"), moving.GetPointer()) })
+  {
+    const auto range = itk::dmr::IntensityRange(named.second);
+    if (!(range.second > range.first))
+    {
+      throw UsageError("the " + named.first + " image has constant intensity " + std::to_string(range.first) +
+                       ": nothing to register (the density would be zero)");
+    }
+  }
+
+  auto method = MethodType::New();
+  method->SetFixedImage(fixed);
+  method->SetMovingImage(moving);
+  method->SetNumberOfNodes(static_cast<itk::SizeValueType>(nodes));
+  method->SetNumberOfIterations(static_cast<unsigned int>(opt.iterations));
+  method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));
+  method->SetLambda(opt.lambda);
+  method->SetMu(opt.mu);
+  method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
+  if (opt.threads > 0)
+  {
+    method->SetNumberOfWorkUnits(static_cast<itk::ThreadIdType>(opt.threads));
+  }
+  using Backend = itk::DynamicMeshRegistrationEnums::Backend;
+  if (opt.backend == "cuda")
+  {
+    if (!itk::dmr::cuda::DeviceAvailable())
+    {
+      throw UsageError("--backend cuda: " + itk::dmr::cuda::UnavailableReason());
+    }
+    method->SetBackend(Backend::CUDA);
+  }
+  else
+  {
+    method->SetBackend(Backend::CPU);
+    if (opt.backend == "auto" && itk::dmr::cuda::DeviceAvailable())
+    {
+      std::cerr << "note: a CUDA device is present but this version runs the registration on the CPU\n";
+    }
+  }
+  std::string meshMode = opt.mesh;
+  if (opt.mesh == "dynamic")
+  {
+    method->SetMeshMode(itk::DynamicMeshRegistrationEnums::MeshMode::Dynamic);
+  }
+  else if (opt.mesh == "regular")
+  {
+    method->SetMeshMode(itk::DynamicMeshRegistrationEnums::MeshMode::Regular);
+  }
+  else
+  {
+    if (!itksys::SystemTools::FileExists(opt.mesh, true))
+    {
+      throw UsageError("--mesh: no such mesh file: " + opt.mesh);
+    }
+    auto reader = itk::MeshFileReader<MeshType>::New();
+    reader->SetFileName(opt.mesh);
+    try
+    {
+      reader->Update();
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("--mesh: cannot read " + opt.mesh + ": " + e.GetDescription());
+    }
+    method->SetMeshMode(itk::DynamicMeshRegistrationEnums::MeshMode::Static);
+    method->SetStaticMesh(reader->GetOutput());
+    meshMode = "static";
+  }
+
+  Staging                  staging(opt.outputDir);
+  std::vector<std::pair<unsigned int, std::string>> meshFiles;
+  auto                     saveMesh = [&](unsigned int iteration) {
+    std::ostringstream name;
+    name << "mesh_" << std::setw(4) << std::setfill('0') << iteration << ".vtu";
+    WriteMeshVTU<D>(method->GetCurrentMesh(), staging.Path(name.str()));
+    meshFiles.emplace_back(iteration, name.str());
+  };
+  auto observer = itk::CStyleCommand::New();
+  struct Context
+  {
+    decltype(saveMesh) * save;
+    MethodType *         method;
+    long                 every;
+    unsigned int         last;
+  } context{ &saveMesh, method.GetPointer(), opt.saveMeshEvery, static_cast<unsigned int>(opt.iterations) };
+  observer->SetClientData(&context);
+  observer->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
+    auto *             c = static_cast<Context *>(data);
+    const unsigned int it = c->method->GetCurrentIteration();
+    if (it == 1 || it == c->last || (c->every > 0 && it % c->every == 0))
+    {
+      (*c->save)(it);
+    }
+  });
+  method->AddObserver(itk::IterationEvent(), observer);
+
+  try
+  {
+    method->Update();
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    throw std::runtime_error(std::string("registration failed: ") + e.GetDescription());
+  }
+  const auto & history = method->GetHistory();
+  if (!history.empty() && (meshFiles.empty() || meshFiles.back().first != history.back().iteration))
+  {
+    saveMesh(history.back().iteration); // stopped early: keep the last mesh
+  }
+
+  // outputs
+  auto field = method->GetDisplacementField();
+  using ResampleType = itk::ResampleImageFilter<ImageType, ImageType, double>;
+  auto resample = ResampleType::New();
+  resample->SetInput(moving);
+  resample->SetTransform(method->GetTransform());
+  resample->SetOutputParametersFromImage(fixed);
+  resample->SetInterpolator(itk::LinearInterpolateImageFunction<ImageType, double>::New());
+  resample->Update();
+  WriteImage(resample->GetOutput(), staging.Path("warped.nii.gz"));
+  WriteImage(field, staging.Path("displacement.nii.gz"));
+  std::pair<double, double> jacobianRange;
+  auto jacobian = itk::dmr::JacobianDeterminantImage(field, jacobianRange, method->GetMultiThreader());
+  WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
+
+  {
+    std::ofstream csv(staging.Path("energy.csv"));
+    csv << "iteration,mssd,ssd,elastic,total,nodes,cvt_sweeps,max_update_px\n";
+    csv << std::setprecision(10);
+    for (const auto & r : history)
+    {
+      csv << r.iteration << ',' << r.mssd << ',' << r.ssd << ',' << r.elastic << ',' << r.total << ',' << r.nodes << ','
+          << r.sweeps << ',' << r.maxUpdate << '\n';
+    }
+  }
+#ifdef DMR_WITH_VTK
+  {
+    std::ofstream pvd(staging.Path("mesh.pvd"));
+    pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
+    for (const auto & m : meshFiles)
+    {
+      pvd << "    <DataSet timestep=\"" << m.first << "\" file=\"" << m.second << "\"/>\n";
+    }
+    pvd << "  </Collection>\n</VTKFile>\n";
+  }
+#endif
+  const auto & t = method->GetTiming();
+  const double ssdInitial = history.empty() ? method->GetFinalSSD() : history.front().ssd;
+  const double mssdInitial = history.empty() ? method->GetFinalMSSD() : history.front().mssd;
+  std::ostringstream json;
+  json << std::setprecision(10) << "{\n"
+       << "  \"tool\": \"itkDynamicMeshRegistration\",\n"
+       << "  \"version\": \"" << DMR_VERSION_STRING << "\",\n"
+       << "  \"fixed\": \"" << JsonEscape(opt.fixed) << "\",\n"
+       << "  \"moving\": \"" << JsonEscape(opt.moving) << "\",\n"
+       << "  \"dimension\": " << D << ",\n"
+       << "  \"size\": [";
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    json << (k ? ", " : "") << fixed->GetLargestPossibleRegion().GetSize()[k];
+  }
+  json << "],\n"
+       << "  \"nodes\": " << nodes << ",\n"
+       << "  \"final_mesh_nodes\": " << (history.empty() ? 0 : history.back().nodes) << ",\n"
+       << "  \"iterations\": " << history.size() << ",\n"
+       << "  \"iterations_requested\": " << opt.iterations << ",\n"
+       << "  \"levels\": " << opt.levels << ",\n"
+       << "  \"mesh_mode\": \"" << meshMode << "\",\n"
+       << "  \"backend\": \"" << method->GetBackendUsed() << "\",\n"
+       << "  \"threads\": " << method->GetNumberOfWorkUnits() << ",\n"
+       << "  \"lambda\": " << opt.lambda << ",\n"
+       << "  \"mu\": " << opt.mu << ",\n"
+       << "  \"beta\": " << method->GetBeta() << ",\n"
+       << "  \"timing_s\": {\"total\": " << t.total << ", \"initial_tessellation\": " << t.initialTessellation
+       << ", \"tessellation_optimization\": " << t.tessellationOptimization
+       << ", \"mesh_construction\": " << t.meshConstruction << ", \"barycentric\": " << t.barycentric
+       << ", \"registration\": " << t.registration << "},\n"
+       << "  \"ssd_initial\": " << ssdInitial << ",\n"
+       << "  \"ssd_final\": " << method->GetFinalSSD() << ",\n"
+       << "  \"mssd_initial\": " << mssdInitial << ",\n"
+       << "  \"mssd_final\": " << method->GetFinalMSSD() << ",\n"
+       << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
+       << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
+       << "  \"wall_time_s\": "
+       << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count() << "\n"
+       << "}\n";
+  const std::string reportName = "report.json";
+  {
+    std::ofstream out(staging.Path(reportName));
+    out << json.str();
+  }
+  staging.Commit();
+  if (!opt.report.empty())
+  {
+    std::ofstream out(opt.report);
+    out << json.str();
+    if (!out)
+    {
+      throw std::runtime_error("could not write the report " + opt.report);
+    }
+  }
+  std::cout << "registered " << opt.moving << " -> " << opt.fixed << " in " << t.total << " s (" << history.size()
+            << " iterations, " << meshMode << " mesh, SSD " << ssdInitial << " -> " << method->GetFinalSSD()
+            << ", det J in [" << jacobianRange.first << ", " << jacobianRange.second << "])\n"
+            << "outputs in " << opt.outputDir << ": warped.nii.gz displacement.nii.gz jacobian.nii.gz energy.csv "
+            << "mesh.pvd report.json\n";
+  return EXIT_SUCCESS;
+}
+} // namespace
+
+int
+main(int argc, char * argv[])
+{
+  try
+  {
+    const Options opt = ParseArguments(argc, argv);
+    if (opt.threads > 0)
+    {
+      itk::MultiThreaderBase::SetGlobalDefaultNumberOfThreads(static_cast<itk::ThreadIdType>(opt.threads));
+    }
+    const unsigned int dFixed = ImageDimensionOf(opt.fixed);
+    const unsigned int dMoving = ImageDimensionOf(opt.moving);
+    if (dFixed != dMoving)
+    {
+      throw UsageError("the fixed image is " + std::to_string(dFixed) + "D but the moving image is " +
+                       std::to_string(dMoving) + "D");
+    }
+    if (dFixed == 2)
+    {
+      return Run<2>(opt);
+    }
+    if (dFixed == 3)
+    {
+      throw UsageError("3D images are not supported by this version yet (2D only)");
+    }
+    throw UsageError("only 2D and 3D images are supported, got " + std::to_string(dFixed) + "D");
+  }
+  catch (const UsageError & e)
+  {
+    std::cerr << "itkDynamicMeshRegistration: error: " << e.what() << '\n';
+    return 2;
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    std::cerr << "itkDynamicMeshRegistration: error: " << e.GetDescription() << '\n';
+    return 1;
+  }
+  catch (const std::exception & e)
+  {
+    std::cerr << "itkDynamicMeshRegistration: error: " << e.what() << '\n';
+    return 1;
+  }
+}

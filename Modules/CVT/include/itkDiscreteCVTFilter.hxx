@@ -1,0 +1,227 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkDiscreteCVTFilter_hxx
+#define itkDiscreteCVTFilter_hxx
+
+#include "itkDiscreteCVTFilter.h"
+#include "itkImageRegionConstIterator.h"
+#include "itkProgressReporter.h"
+#include "dmrCudaBackend.h"
+#include <chrono>
+
+namespace itk
+{
+template <typename TDensityImage, typename TLabelImage>
+DiscreteCVTFilter<TDensityImage, TLabelImage>::DiscreteCVTFilter()
+{
+  this->SetPrimaryInputName("DensityImage");
+  this->AddOptionalInputName("InitialLabels");
+  this->SetNumberOfRequiredOutputs(2);
+  this->SetNthOutput(0, this->MakeOutput(0));
+  this->SetNthOutput(1, this->MakeOutput(1));
+}
+
+template <typename TDensityImage, typename TLabelImage>
+DataObject::Pointer
+DiscreteCVTFilter<TDensityImage, TLabelImage>::MakeOutput(DataObjectPointerArraySizeType idx)
+{
+  if (idx == 1)
+  {
+    return SitesType::New().GetPointer();
+  }
+  return Superclass::MakeOutput(idx);
+}
+
+template <typename TDensityImage, typename TLabelImage>
+auto
+DiscreteCVTFilter<TDensityImage, TLabelImage>::GetSites() -> SitesType *
+{
+  return dynamic_cast<SitesType *>(this->ProcessObject::GetOutput(1));
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
+{
+  Superclass::VerifyPreconditions();
+  const auto numberOfPixels = this->GetInput()->GetLargestPossibleRegion().GetNumberOfPixels();
+  if (m_NumberOfCells > numberOfPixels)
+  {
+    itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
+                                        << ")");
+  }
+  if (m_Backend == BackendEnum::CUDA)
+  {
+    itkExceptionMacro("the CUDA back-end of DiscreteCVTFilter is not available: "
+                      << (dmr::cuda::DeviceAvailable() ? std::string("its kernels are not part of this version")
+                                                       : dmr::cuda::UnavailableReason()));
+  }
+  const LabelImageType * initial = this->GetInitialLabels();
+  if (initial && initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
+  {
+    itkExceptionMacro("InitialLabels must have the size of the density image");
+  }
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateInputRequestedRegion()
+{
+  Superclass::GenerateInputRequestedRegion();
+  for (auto & input : this->GetInputs())
+  {
+    if (auto * image = dynamic_cast<ImageBase<ImageDimension> *>(input.GetPointer()))
+    {
+      image->SetRequestedRegionToLargestPossibleRegion();
+    }
+  }
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::EnlargeOutputRequestedRegion(DataObject * output)
+{
+  Superclass::EnlargeOutputRequestedRegion(output);
+  if (auto * image = dynamic_cast<ImageBase<ImageDimension> *>(output))
+  {
+    image->SetRequestedRegionToLargestPossibleRegion();
+  }
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateOutputInformation()
+{
+  const DensityImageType * input = this->GetInput();
+  LabelImageType *         output = this->GetOutput();
+  if (input && output)
+  {
+    output->CopyInformation(input);
+    output->SetLargestPossibleRegion(input->GetLargestPossibleRegion());
+  }
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
+{
+  using Clock = std::chrono::steady_clock;
+  ProgressReporter         progress(this, 0, 3);
+  const DensityImageType * density = this->GetInput();
+  const auto               grid = dmr::Grid<ImageDimension>::FromImage(density);
+  m_BackendUsed = BackendEnum::CPU;
+
+  m_DensityBuffer.resize(grid.numberOfPixels);
+  {
+    ImageRegionConstIterator<DensityImageType> it(density, density->GetLargestPossibleRegion());
+    size_t                                     i = 0;
+    for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
+    {
+      const double v = static_cast<double>(it.Get());
+      if (!(v > 0.0) || !std::isfinite(v))
+      {
+        itkExceptionMacro("the density must be positive and finite everywhere; pixel " << i << " has " << v);
+      }
+      m_DensityBuffer[i] = static_cast<float>(v);
+    }
+  }
+  m_Core.SetDensity(grid, m_DensityBuffer.data(), this->GetMultiThreader());
+
+  auto                   t0 = Clock::now();
+  const LabelImageType * initial = this->GetInitialLabels();
+  m_InitializationTime = 0.0;
+  bool warm = false;
+  if (initial)
+  {
+    std::vector<int32_t>                     labels(grid.numberOfPixels);
+    ImageRegionConstIterator<LabelImageType> it(initial, initial->GetLargestPossibleRegion());
+    size_t                                   i = 0;
+    int64_t                                  maxLabel = -1;
+    for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
+    {
+      labels[i] = static_cast<int32_t>(it.Get());
+      maxLabel = std::max<int64_t>(maxLabel, labels[i]);
+    }
+    if (maxLabel + 1 == static_cast<int64_t>(m_NumberOfCells))
+    {
+      m_Core.SetLabels(labels.data(), m_NumberOfCells);
+      warm = true;
+    }
+  }
+  if (!warm)
+  {
+    m_Core.ContractionInitialize(m_NumberOfCells, m_BlockSize);
+    m_InitializationTime = std::chrono::duration<double>(Clock::now() - t0).count();
+  }
+  progress.CompletedPixel();
+
+  t0 = Clock::now();
+  m_InitialEnergy = m_Core.GetEnergy();
+  const auto result = m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
+  m_OptimizationTime = std::chrono::duration<double>(Clock::now() - t0).count();
+  m_Energy = result.energyAfter;
+  m_NumberOfSweeps = result.sweeps;
+  m_NumberOfSwaps = result.swaps;
+  progress.CompletedPixel();
+
+  LabelImageType * output = this->GetOutput();
+  output->SetBufferedRegion(output->GetLargestPossibleRegion());
+  output->Allocate();
+  std::copy(m_Core.GetLabels().begin(), m_Core.GetLabels().end(), output->GetBufferPointer());
+
+  SitesType * sites = this->GetSites();
+  sites->Initialize();
+  const auto & centroids = m_Core.GetCentroids();
+  const auto & masses = m_Core.GetMasses();
+  const auto   start = density->GetLargestPossibleRegion().GetIndex();
+  for (size_t c = 0; c < masses.size(); ++c)
+  {
+    ContinuousIndex<double, ImageDimension> ci;
+    for (unsigned int k = 0; k < ImageDimension; ++k)
+    {
+      ci[k] = start[k] + centroids[c * ImageDimension + k] / grid.spacing[k];
+    }
+    typename SitesType::PointType point;
+    density->TransformContinuousIndexToPhysicalPoint(ci, point);
+    sites->SetPoint(c, point);
+    sites->SetPointData(c, masses[c]);
+  }
+  progress.CompletedPixel();
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::PrintSelf(std::ostream & os, Indent indent) const
+{
+  Superclass::PrintSelf(os, indent);
+  os << indent << "NumberOfCells: " << m_NumberOfCells << std::endl;
+  os << indent << "BlockSize: " << m_BlockSize << std::endl;
+  os << indent << "Epsilon: " << m_Epsilon << std::endl;
+  os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
+  os << indent << "Backend: " << m_Backend << std::endl;
+  os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
+  os << indent << "InitialEnergy: " << m_InitialEnergy << std::endl;
+  os << indent << "Energy: " << m_Energy << std::endl;
+  os << indent << "NumberOfSweeps: " << m_NumberOfSweeps << std::endl;
+  os << indent << "NumberOfSwaps: " << m_NumberOfSwaps << std::endl;
+  os << indent << "InitializationTime: " << m_InitializationTime << std::endl;
+  os << indent << "OptimizationTime: " << m_OptimizationTime << std::endl;
+}
+} // namespace itk
+
+#endif

@@ -1,0 +1,47 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrCudaBackend_h
+#define dmrCudaBackend_h
+
+#include "DynamicMeshRegistrationExport.h"
+#include <string>
+
+/** Plain C++ launcher API of the CUDA back-end (no CUDA or ITK types): see STYLE.md section 4.
+ * Compiled from Common/cuda/dmrCudaDevice.cu when DMR_USE_CUDA=ON, from Common/src/dmrCudaStub.cxx otherwise. */
+namespace itk
+{
+namespace dmr
+{
+namespace cuda
+{
+/** True when the library was built with CUDA and a usable device is present. */
+DynamicMeshRegistration_EXPORT bool
+DeviceAvailable();
+
+/** Why DeviceAvailable() is false (empty when it is true). */
+DynamicMeshRegistration_EXPORT std::string
+UnavailableReason();
+
+/** One-line description of the device (name, memory), or the reason it is unavailable. */
+DynamicMeshRegistration_EXPORT std::string
+DeviceDescription();
+} // namespace cuda
+} // namespace dmr
+} // namespace itk
+
+#endif

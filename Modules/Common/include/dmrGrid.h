@@ -1,0 +1,218 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrGrid_h
+#define dmrGrid_h
+
+#include "itkImageBase.h"
+#include "itkMultiThreaderBase.h"
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <algorithm>
+
+namespace itk
+{
+namespace dmr
+{
+/** \brief Flat-array view of an image grid in the "grid frame".
+ *
+ * The grid frame has its axes along the image axes and is measured in mm: a pixel with index i sits at
+ * p = spacing (.) (i - start). It differs from ITK's physical space only by the image origin and the rotation
+ * (or reflection) in Direction, which preserve distances, so densities, centroids, Delaunay triangulations and
+ * linear-elastic stiffness computed in the grid frame are the physical ones. Vectors convert to physical space
+ * by v_phys = Direction v_grid.
+ * \ingroup DynamicMeshRegistration */
+template <unsigned int VDimension>
+struct Grid
+{
+  static constexpr unsigned int Dimension = VDimension;
+  std::array<size_t, VDimension> size{};
+  std::array<size_t, VDimension> stride{};
+  std::array<double, VDimension> spacing{};
+  size_t                         numberOfPixels{ 0 };
+
+  Grid() = default;
+
+  template <typename TSize, typename TSpacing>
+  Grid(const TSize & sz, const TSpacing & sp)
+  {
+    size_t s = 1;
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      size[k] = static_cast<size_t>(sz[k]);
+      spacing[k] = static_cast<double>(sp[k]);
+      stride[k] = s;
+      s *= size[k];
+    }
+    numberOfPixels = s;
+  }
+
+  /** Grid of an image's largest possible region (the whole image). */
+  static Grid
+  FromImage(const ImageBase<VDimension> * image)
+  {
+    return Grid(image->GetLargestPossibleRegion().GetSize(), image->GetSpacing());
+  }
+
+  std::array<int64_t, VDimension>
+  Index(size_t linear) const
+  {
+    std::array<int64_t, VDimension> idx;
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      idx[k] = static_cast<int64_t>(linear % size[k]);
+      linear /= size[k];
+    }
+    return idx;
+  }
+
+  double
+  PixelVolume() const
+  {
+    double v = 1.0;
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      v *= spacing[k];
+    }
+    return v;
+  }
+
+  /** True when the pixel lies on the border of the image box. */
+  bool
+  OnBorder(const std::array<int64_t, VDimension> & idx) const
+  {
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      if (idx[k] == 0 || idx[k] == static_cast<int64_t>(size[k]) - 1)
+      {
+        return true;
+      }
+    }
+    return false;
+  }
+};
+
+/** Multilinear interpolation of NComp interleaved float components at a continuous index; positions outside the
+ * image are clamped to the border (zero-flux extension). Adds w * value into out[]. */
+template <unsigned int VDimension, unsigned int NComp>
+inline void
+InterpolateAdd(const Grid<VDimension> & grid, const float * data, const double * cidx, double w, double * out)
+{
+  size_t base[VDimension];
+  size_t step[VDimension];
+  double frac[VDimension];
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    const double hi = static_cast<double>(grid.size[k] - 1);
+    double       c = cidx[k] < 0.0 ? 0.0 : (cidx[k] > hi ? hi : cidx[k]);
+    double       f = std::floor(c);
+    size_t       i = static_cast<size_t>(f);
+    if (i >= grid.size[k] - 1)
+    {
+      i = grid.size[k] > 1 ? grid.size[k] - 2 : 0;
+      f = static_cast<double>(i);
+    }
+    base[k] = i * grid.stride[k];
+    step[k] = grid.size[k] > 1 ? grid.stride[k] : 0;
+    frac[k] = c - f;
+  }
+  size_t offset0 = 0;
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    offset0 += base[k];
+  }
+  for (unsigned int corner = 0; corner < (1u << VDimension); ++corner)
+  {
+    double weight = w;
+    size_t offset = offset0;
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      if (corner & (1u << k))
+      {
+        weight *= frac[k];
+        offset += step[k];
+      }
+      else
+      {
+        weight *= 1.0 - frac[k];
+      }
+    }
+    if (weight != 0.0)
+    {
+      const float * v = data + offset * NComp;
+      for (unsigned int c = 0; c < NComp; ++c)
+      {
+        out[c] += weight * static_cast<double>(v[c]);
+      }
+    }
+  }
+}
+
+/** Runs body(begin, end) over [0, n) in contiguous chunks through ITK's threader, so that
+ * ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS and the filter's work-unit settings keep control. */
+template <typename TBody>
+void
+ParallelForChunks(MultiThreaderBase * threader, size_t n, TBody && body, size_t minChunk = 1024)
+{
+  if (n == 0)
+  {
+    return;
+  }
+  const size_t workUnits = threader ? std::max<size_t>(1, threader->GetNumberOfWorkUnits()) : 1;
+  size_t       chunks = std::min<size_t>(workUnits * 4, (n + minChunk - 1) / minChunk);
+  chunks = std::max<size_t>(chunks, 1);
+  if (chunks == 1 || threader == nullptr)
+  {
+    body(size_t{ 0 }, n);
+    return;
+  }
+  const size_t chunkSize = (n + chunks - 1) / chunks;
+  threader->ParallelizeArray(
+    0,
+    chunks,
+    [&](SizeValueType c) {
+      const size_t b = c * chunkSize;
+      const size_t e = std::min(n, b + chunkSize);
+      if (b < e)
+      {
+        body(b, e);
+      }
+    },
+    nullptr);
+}
+/** Runs body(chunkId) for chunkId in [0, numberOfChunks) through ITK's threader. Callers that need deterministic
+ * results combine per-chunk outputs in chunk order. */
+template <typename TBody>
+void
+ParallelForChunkIds(MultiThreaderBase * threader, size_t numberOfChunks, TBody && body)
+{
+  if (threader == nullptr || numberOfChunks <= 1 || threader->GetNumberOfWorkUnits() <= 1)
+  {
+    for (size_t c = 0; c < numberOfChunks; ++c)
+    {
+      body(c);
+    }
+    return;
+  }
+  threader->ParallelizeArray(
+    0, numberOfChunks, [&](SizeValueType c) { body(static_cast<size_t>(c)); }, nullptr);
+}
+} // namespace dmr
+} // namespace itk
+
+#endif

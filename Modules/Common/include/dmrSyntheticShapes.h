@@ -1,0 +1,125 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrSyntheticShapes_h
+#define dmrSyntheticShapes_h
+
+#include "itkImage.h"
+#include "itkImageRegionIteratorWithIndex.h"
+#include <cmath>
+#include <functional>
+
+namespace itk
+{
+namespace dmr
+{
+/** The paper's 2D test pairs (section 5.2), rendered with 4 x 4 supersampling so edges are anti-aliased.
+ * Intensity 1 inside the shape, 0 outside; unit spacing, origin 0, identity direction. */
+using ShapeImageType = Image<float, 2>;
+using InsideFunction = std::function<bool(double x, double y)>;
+
+inline ShapeImageType::Pointer
+RenderShape(unsigned int width, unsigned int height, const InsideFunction & inside)
+{
+  auto                    image = ShapeImageType::New();
+  ShapeImageType::SizeType size = { { width, height } };
+  image->SetRegions(size);
+  image->Allocate();
+  constexpr int sub = 4;
+  for (ImageRegionIteratorWithIndex<ShapeImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto idx = it.GetIndex();
+    int        count = 0;
+    for (int a = 0; a < sub; ++a)
+    {
+      for (int b = 0; b < sub; ++b)
+      {
+        const double x = idx[0] + (a + 0.5) / sub - 0.5;
+        const double y = idx[1] + (b + 0.5) / sub - 0.5;
+        count += inside(x, y) ? 1 : 0;
+      }
+    }
+    it.Set(static_cast<float>(count) / (sub * sub));
+  }
+  return image;
+}
+
+/** Circle-to-leaf (paper Fig. 3): 1024 x 256, source a disk of radius 60; target: the right half is the same
+ * semicircle, the left half a semi-ellipse with semi-major axis 600 (and semi-minor axis 60). */
+struct CircleToLeaf
+{
+  static constexpr unsigned int Width = 1024, Height = 256;
+  static constexpr double       CentreX = 700.0, CentreY = 127.5, Radius = 60.0, SemiMajor = 600.0;
+  static bool
+  Source(double x, double y)
+  {
+    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+  }
+  static bool
+  Target(double x, double y)
+  {
+    if (x >= CentreX)
+    {
+      return Source(x, y);
+    }
+    const double a = (x - CentreX) / SemiMajor, b = (y - CentreY) / Radius;
+    return a * a + b * b <= 1.0;
+  }
+};
+
+/** Circle-to-epsilon (paper Figs. 4, 5): 512 x 512, source a disk of radius 120; target an epsilon-like shape: a disk
+ * of radius 130 with two elliptical bays on its right side, each joined to the outside by an entrance 5 pixels wide
+ * (the narrow passages that trap static meshes). */
+struct CircleToEpsilon
+{
+  static constexpr unsigned int Width = 512, Height = 512;
+  static constexpr double       CentreX = 255.5, CentreY = 255.5, Radius = 120.0;
+  static constexpr double       OuterRadius = 130.0, BayOffsetX = 25.0, BayOffsetY = 55.0, BayA = 70.0, BayB = 28.0;
+  static constexpr double       Entrance = 5.0;
+  static bool
+  Source(double x, double y)
+  {
+    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+  }
+  static bool
+  Target(double x, double y)
+  {
+    const double dx = x - CentreX, dy = y - CentreY;
+    if (dx * dx + dy * dy > OuterRadius * OuterRadius)
+    {
+      return false;
+    }
+    for (double s : { -1.0, 1.0 })
+    {
+      const double by = s * BayOffsetY;
+      const double a = (dx - BayOffsetX) / BayA, b = (dy - by) / BayB;
+      if (a * a + b * b <= 1.0)
+      {
+        return false; // inside a bay
+      }
+      if (dx >= BayOffsetX && std::abs(dy - by) <= Entrance / 2.0)
+      {
+        return false; // the entrance channel from the bay to the outside
+      }
+    }
+    return true;
+  }
+};
+} // namespace dmr
+} // namespace itk
+
+#endif

@@ -1,0 +1,490 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkDensityFieldFilter_hxx
+#define itkDensityFieldFilter_hxx
+
+#include "itkDensityFieldFilter.h"
+#include "itkCastImageFilter.h"
+#include "itkDiscreteGaussianImageFilter.h"
+#include "itkShrinkImageFilter.h"
+#include "itkImageRegionConstIterator.h"
+#include "itkImageAlgorithm.h"
+#include "itkProgressReporter.h"
+#include <numeric>
+
+namespace itk
+{
+template <typename TF, typename TM, typename TD, typename TO>
+DensityFieldFilter<TF, TM, TD, TO>::DensityFieldFilter()
+{
+  this->SetPrimaryInputName("FixedImage");
+  this->AddRequiredInputName("MovingImage");
+  this->AddOptionalInputName("DisplacementField");
+  this->SetNumberOfRequiredOutputs(2);
+  this->SetNthOutput(0, this->MakeOutput(0));
+  this->SetNthOutput(1, this->MakeOutput(1));
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+DataObject::Pointer
+DensityFieldFilter<TF, TM, TD, TO>::MakeOutput(DataObjectPointerArraySizeType idx)
+{
+  if (idx == 1)
+  {
+    return ForceFieldType::New().GetPointer();
+  }
+  return Superclass::MakeOutput(idx);
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+auto
+DensityFieldFilter<TF, TM, TD, TO>::GetForceField() -> ForceFieldType *
+{
+  return dynamic_cast<ForceFieldType *>(this->ProcessObject::GetOutput(1));
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::VerifyPreconditions() ITKv5_CONST
+{
+  Superclass::VerifyPreconditions();
+  const FixedImageType * fixed = this->GetFixedImage();
+  const auto             fixedSize = fixed->GetLargestPossibleRegion().GetSize();
+  for (unsigned int k = 0; k < ImageDimension; ++k)
+  {
+    if (fixedSize[k] < 2)
+    {
+      itkExceptionMacro("the fixed image must have at least 2 pixels along every axis, axis " << k << " has "
+                                                                                               << fixedSize[k]);
+    }
+  }
+  const DisplacementFieldType * field = this->GetDisplacementField();
+  if (field != nullptr && field->GetLargestPossibleRegion().GetSize() != fixedSize)
+  {
+    itkExceptionMacro("the displacement field must lie on the fixed image grid: its size "
+                      << field->GetLargestPossibleRegion().GetSize() << " differs from the fixed image size "
+                      << fixedSize);
+  }
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::GenerateInputRequestedRegion()
+{
+  // Global computation (pyramids, mean |f|^2): every input is needed whole.
+  for (auto & input : this->GetInputs())
+  {
+    if (auto * image = dynamic_cast<ImageBase<ImageDimension> *>(input.GetPointer()))
+    {
+      image->SetRequestedRegionToLargestPossibleRegion();
+    }
+  }
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::GenerateOutputInformation()
+{
+  Superclass::GenerateOutputInformation();
+  ForceFieldType * force = this->GetForceField();
+  force->CopyInformation(this->GetFixedImage());
+  force->SetRegions(this->GetFixedImage()->GetLargestPossibleRegion());
+}
+
+namespace dmr
+{
+/** Float copy of an image's buffer (whole image) into a flat array. */
+template <typename TImage>
+void
+CopyToFloat(const TImage * image, std::vector<float> & out)
+{
+  out.resize(image->GetLargestPossibleRegion().GetNumberOfPixels());
+  ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
+  size_t                           i = 0;
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
+  {
+    out[i] = static_cast<float>(it.Get());
+  }
+}
+
+/** Central-difference gradient (per mm, one-sided at the border) of a flat image, rotated by R into another frame:
+ * out = R * grad. */
+template <unsigned int D>
+void
+GradientInto(MultiThreaderBase *       threader,
+             const Grid<D> &           grid,
+             const std::vector<float> & image,
+             const double (&R)[D][D],
+             std::vector<float> &      out)
+{
+  out.assign(grid.numberOfPixels * D, 0.0f);
+  ParallelForChunks(threader, grid.numberOfPixels, [&](size_t begin, size_t end) {
+    for (size_t p = begin; p < end; ++p)
+    {
+      const auto idx = grid.Index(p);
+      double     g[D];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        const int64_t n = static_cast<int64_t>(grid.size[k]);
+        const size_t  lo = idx[k] > 0 ? p - grid.stride[k] : p;
+        const size_t  hi = idx[k] + 1 < n ? p + grid.stride[k] : p;
+        const double  h = (static_cast<double>(hi > lo ? (hi - lo) / grid.stride[k] : 1)) * grid.spacing[k];
+        g[k] = hi > lo ? (static_cast<double>(image[hi]) - static_cast<double>(image[lo])) / h : 0.0;
+      }
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        double v = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          v += R[r][k] * g[k];
+        }
+        out[p * D + r] = static_cast<float>(v);
+      }
+    }
+  });
+}
+
+/** Affine map from a reference image's indices to another image's continuous indices through physical space:
+ * c = A * index + c0. */
+template <unsigned int D, typename TRef, typename TOther>
+void
+IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D][D], double (&c0)[D])
+{
+  using IndexType = typename TRef::IndexType;
+  IndexType start = ref->GetLargestPossibleRegion().GetIndex();
+  typename TRef::PointType p0;
+  ref->TransformIndexToPhysicalPoint(start, p0);
+  const auto ci0 = other->template TransformPhysicalPointToContinuousIndex<double, double>(p0);
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    c0[r] = ci0[r];
+  }
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    IndexType idx = start;
+    idx[k] += 1;
+    typename TRef::PointType p1;
+    ref->TransformIndexToPhysicalPoint(idx, p1);
+    const auto ci1 = other->template TransformPhysicalPointToContinuousIndex<double, double>(p1);
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      A[r][k] = ci1[r] - ci0[r];
+    }
+  }
+}
+} // namespace dmr
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
+{
+  const FixedImageType *  fixed = this->GetFixedImage();
+  const MovingImageType * moving = this->GetMovingImage();
+  const ModifiedTimeType  inputTime = std::max(fixed->GetMTime(), moving->GetMTime());
+  if (!m_Levels.empty() && m_PyramidTime >= inputTime && m_PyramidLevels == m_NumberOfLevels &&
+      m_Levels[0].fixedGrid.numberOfPixels == fixed->GetLargestPossibleRegion().GetNumberOfPixels())
+  {
+    return; // the pyramids depend only on the images, not on the displacement field: keep them across iterations
+  }
+  using FloatImageType = Image<float, ImageDimension>;
+  m_Levels.clear();
+  m_Levels.resize(m_NumberOfLevels);
+
+  const auto & dirF = fixed->GetDirection();
+  const auto & dirM = moving->GetDirection();
+  double       R[ImageDimension][ImageDimension]; // moving grid frame -> fixed grid frame
+  for (unsigned int r = 0; r < ImageDimension; ++r)
+  {
+    for (unsigned int c = 0; c < ImageDimension; ++c)
+    {
+      double v = 0.0;
+      for (unsigned int k = 0; k < ImageDimension; ++k)
+      {
+        v += dirF[k][r] * dirM[k][c];
+      }
+      R[r][c] = v;
+    }
+  }
+
+  auto makeLevel = [this](const auto * image, unsigned int level) {
+    using InImageType = std::remove_cv_t<std::remove_pointer_t<decltype(image)>>;
+    using CastType = CastImageFilter<InImageType, FloatImageType>;
+    auto cast = CastType::New();
+    cast->SetInput(image);
+    cast->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+    if (level == 0)
+    {
+      cast->Update();
+      typename FloatImageType::Pointer out = cast->GetOutput();
+      out->DisconnectPipeline();
+      return out;
+    }
+    const unsigned int factor = 1u << level;
+    auto               smooth = DiscreteGaussianImageFilter<FloatImageType, FloatImageType>::New();
+    smooth->SetInput(cast->GetOutput());
+    smooth->SetUseImageSpacing(false);
+    smooth->SetVariance(0.25 * factor * factor); // sigma = 0.5 x shrink factor pixels, as ITK's pyramids
+    smooth->SetMaximumKernelWidth(64);
+    smooth->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+    auto shrink = ShrinkImageFilter<FloatImageType, FloatImageType>::New();
+    shrink->SetInput(smooth->GetOutput());
+    for (unsigned int k = 0; k < ImageDimension; ++k)
+    {
+      const auto n = image->GetLargestPossibleRegion().GetSize()[k];
+      shrink->SetShrinkFactor(k, std::max<unsigned int>(1, std::min<unsigned int>(factor, n / 2)));
+    }
+    shrink->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+    shrink->Update();
+    typename FloatImageType::Pointer out = shrink->GetOutput();
+    out->DisconnectPipeline();
+    return out;
+  };
+
+  double lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
+  for (unsigned int l = 0; l < m_NumberOfLevels; ++l)
+  {
+    Level & L = m_Levels[l];
+    auto    f = makeLevel(fixed, l);
+    auto    m = makeLevel(moving, l);
+    L.fixedGrid = GridType::FromImage(f);
+    L.movingGrid = GridType::FromImage(m);
+    dmr::CopyToFloat(f.GetPointer(), L.fixed);
+    dmr::CopyToFloat(m.GetPointer(), L.moving);
+    dmr::GradientInto<ImageDimension>(this->GetMultiThreader(), L.movingGrid, L.moving, R, L.movingGradient);
+    dmr::IndexToContinuousIndexMap<ImageDimension>(fixed, f.GetPointer(), L.FA, L.Fc);
+    dmr::IndexToContinuousIndexMap<ImageDimension>(fixed, m.GetPointer(), L.MA, L.Mc);
+    // physical vector -> moving-level index vector: diag(1/spacing) Direction^-1
+    const auto & inverseDirection = m->GetInverseDirection();
+    for (unsigned int r = 0; r < ImageDimension; ++r)
+    {
+      for (unsigned int c = 0; c < ImageDimension; ++c)
+      {
+        L.MB[r][c] = inverseDirection[r][c] / m->GetSpacing()[r];
+      }
+    }
+    if (l == 0)
+    {
+      for (float v : L.moving)
+      {
+        lo = std::min(lo, static_cast<double>(v));
+        hi = std::max(hi, static_cast<double>(v));
+      }
+    }
+  }
+  m_IntensityRange = hi - lo;
+  m_PyramidTime = inputTime;
+  m_PyramidLevels = m_NumberOfLevels;
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
+{
+  constexpr unsigned int D = ImageDimension;
+  ProgressReporter       progress(this, 0, 3);
+  this->BuildPyramids();
+  progress.CompletedPixel();
+
+  const FixedImageType *        fixed = this->GetFixedImage();
+  const DisplacementFieldType * field = this->GetDisplacementField();
+  const GridType                grid = GridType::FromImage(fixed);
+  const size_t                  n = grid.numberOfPixels;
+  const auto &                  dirF = fixed->GetDirection();
+
+  DensityImageType * density = this->GetOutput();
+  density->SetBufferedRegion(density->GetRequestedRegion());
+  density->Allocate();
+  ForceFieldType * force = this->GetForceField();
+  force->SetBufferedRegion(force->GetLargestPossibleRegion());
+  force->Allocate();
+  m_GridForce.resize(n * D);
+
+  const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
+  auto *       densityBuffer = density->GetBufferPointer();
+  auto *       forceBuffer = force->GetBufferPointer();
+  float *      gridForce = m_GridForce.data();
+  const auto * levels = m_Levels.data();
+  const unsigned int nLevels = m_NumberOfLevels;
+
+  // Per-chunk partial sums, combined in chunk order so the result does not depend on thread timing.
+  struct Partial
+  {
+    double mssd{ 0 }, ssd{ 0 }, f2{ 0 };
+  };
+  const size_t          chunk = std::max<size_t>(4096, n / 64 + 1);
+  const size_t          nChunks = (n + chunk - 1) / chunk;
+  std::vector<Partial>  partial(nChunks);
+  dmr::ParallelForChunks(
+    this->GetMultiThreader(),
+    nChunks,
+    [&](size_t cBegin, size_t cEnd) {
+      for (size_t c = cBegin; c < cEnd; ++c)
+      {
+        Partial      acc;
+        const size_t pEnd = std::min(n, (c + 1) * chunk);
+        for (size_t p = c * chunk; p < pEnd; ++p)
+        {
+          const auto idx = grid.Index(p);
+          double     u[D] = {};
+          if (fieldBuffer)
+          {
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              u[k] = fieldBuffer[p][k];
+            }
+          }
+          double f[D] = {};
+          for (unsigned int l = 0; l < nLevels; ++l)
+          {
+            const Level & L = levels[l];
+            double        cf[D], cm[D];
+            for (unsigned int r = 0; r < D; ++r)
+            {
+              cf[r] = L.Fc[r];
+              cm[r] = L.Mc[r];
+              for (unsigned int k = 0; k < D; ++k)
+              {
+                cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
+                cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
+              }
+            }
+            double t = 0.0, s = 0.0, g[D] = {};
+            if (l == 0)
+            {
+              t = L.fixed[p]; // level 0 is the fixed image itself
+            }
+            else
+            {
+              dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
+            }
+            dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0, &s);
+            dmr::InterpolateAdd<D, D>(L.movingGrid, L.movingGradient.data(), cm, 1.0, g);
+            const double residual = t - s;
+            acc.mssd += residual * residual;
+            if (l == 0)
+            {
+              acc.ssd += residual * residual;
+            }
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              f[k] += 2.0 * residual * g[k]; // paper Eq. 5
+            }
+          }
+          double f2 = 0.0;
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            f2 += f[k] * f[k];
+            gridForce[p * D + k] = static_cast<float>(f[k]);
+            double phys = 0.0;
+            for (unsigned int j = 0; j < D; ++j)
+            {
+              phys += dirF[k][j] * f[j];
+            }
+            forceBuffer[p][k] = static_cast<typename ForceFieldType::PixelType::ValueType>(phys);
+          }
+          densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(f2);
+          acc.f2 += f2;
+        }
+        partial[c] = acc;
+      }
+    },
+    1);
+  progress.CompletedPixel();
+
+  Partial total;
+  for (const auto & p : partial)
+  {
+    total.mssd += p.mssd;
+    total.ssd += p.ssd;
+    total.f2 += p.f2;
+  }
+  m_MSSD = total.mssd;
+  m_SSD = total.ssd;
+  m_MeanSquaredForce = total.f2 / static_cast<double>(n);
+  if (!m_UseFixedAlpha)
+  {
+    // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the
+    // density would vanish: fall back to a floor relative to the squared force scale of the intensity range.
+    double minSpacing = grid.spacing[0];
+    for (unsigned int k = 1; k < D; ++k)
+    {
+      minSpacing = std::min(minSpacing, grid.spacing[k]);
+    }
+    const double forceScale = 2.0 * m_IntensityRange * m_IntensityRange / minSpacing;
+    const double floor = std::max(1e-12 * forceScale * forceScale, std::numeric_limits<double>::min());
+    m_Alpha = std::max(m_AlphaFactor * m_MeanSquaredForce, floor);
+  }
+  const double alpha = m_Alpha;
+  dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(densityBuffer[p] + alpha); // Eq. 9
+    }
+  });
+  progress.CompletedPixel();
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType * field, std::vector<float> & out) const
+{
+  constexpr unsigned int D = ImageDimension;
+  if (m_Levels.empty())
+  {
+    itkExceptionMacro("WarpMovingImage needs the pyramids: call Update() first");
+  }
+  const Level &  L = m_Levels[0];
+  const GridType grid = m_Levels[0].fixedGrid;
+  out.resize(grid.numberOfPixels);
+  const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
+  dmr::ParallelForChunks(this->GetMultiThreader(), grid.numberOfPixels, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      const auto idx = grid.Index(p);
+      double     cm[D];
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        cm[r] = L.Mc[r];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + (fieldBuffer ? L.MB[r][k] * fieldBuffer[p][k] : 0.0);
+        }
+      }
+      double s = 0.0;
+      dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0, &s);
+      out[p] = static_cast<float>(s);
+    }
+  });
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
+DensityFieldFilter<TF, TM, TD, TO>::PrintSelf(std::ostream & os, Indent indent) const
+{
+  Superclass::PrintSelf(os, indent);
+  os << indent << "NumberOfLevels: " << m_NumberOfLevels << std::endl;
+  os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
+  os << indent << "UseFixedAlpha: " << (m_UseFixedAlpha ? "On" : "Off") << std::endl;
+  os << indent << "Alpha: " << m_Alpha << std::endl;
+  os << indent << "MSSD: " << m_MSSD << std::endl;
+  os << indent << "SSD: " << m_SSD << std::endl;
+  os << indent << "MeanSquaredForce: " << m_MeanSquaredForce << std::endl;
+}
+} // namespace itk
+
+#endif

@@ -1,0 +1,315 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrBarycentricMap_h
+#define dmrBarycentricMap_h
+
+#include "dmrSimplexMesh.h"
+#include <atomic>
+#include <memory>
+#include <limits>
+
+namespace itk
+{
+namespace dmr
+{
+/** \brief Per-pixel element and barycentric coordinates of a simplex mesh over an image grid (paper 4.7).
+ *
+ * Built by rasterising every element over the pixel centres in its bounding box (parallel over elements). A pixel
+ * centre on a shared edge/face is inside several elements; the element with the lowest id wins (an atomic minimum,
+ * the rule the CUDA kernel uses too), so every pixel lies in exactly one element. Weights are in [0,1] and sum to 1.
+ * Gather() forms the consistent load vector f_a = sum_x phi_a(x) f(x) dV; Interpolate() gives u(x) = sum_a phi_a(x)
+ * u_a.
+ * \ingroup DynamicMeshRegistration */
+template <unsigned int D>
+class BarycentricMap
+{
+public:
+  static constexpr unsigned int NumberOfVertices = D + 1;
+
+  void
+  Build(const Grid<D> & grid, const SimplexMesh<D> & mesh, MultiThreaderBase * threader)
+  {
+    m_Grid = grid;
+    const size_t n = grid.numberOfPixels;
+    m_Element.resize(n);
+    m_Weights.resize(n * NumberOfVertices);
+    std::unique_ptr<std::atomic<int32_t>[]> owner(new std::atomic<int32_t>[n]);
+    for (size_t p = 0; p < n; ++p)
+    {
+      owner[p].store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
+    }
+    const size_t nElements = mesh.elements.size();
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 4));
+    const size_t chunk = (nElements + nChunks - 1) / nChunks;
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      const size_t end = std::min(nElements, (c + 1) * chunk);
+      for (size_t e = c * chunk; e < end; ++e)
+      {
+        double inv[D][D], x0[D];
+        Inverse(mesh, e, inv, x0);
+        int64_t lo[D], hi[D];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          double mn = std::numeric_limits<double>::max(), mx = -mn;
+          for (unsigned int v = 0; v < NumberOfVertices; ++v)
+          {
+            const double q = mesh.nodes[mesh.elements[e][v] * D + k] / grid.spacing[k];
+            mn = std::min(mn, q);
+            mx = std::max(mx, q);
+          }
+          lo[k] = std::max<int64_t>(0, static_cast<int64_t>(std::ceil(mn - 1e-6)));
+          hi[k] = std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(std::floor(mx + 1e-6)));
+          if (lo[k] > hi[k])
+          {
+            lo[0] = 1;
+            hi[0] = 0;
+            break;
+          }
+        }
+        if (lo[0] > hi[0])
+        {
+          continue;
+        }
+        int64_t idx[D];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          idx[k] = lo[k];
+        }
+        while (true)
+        {
+          double lambda[NumberOfVertices];
+          Barycentric(inv, x0, idx, lambda);
+          bool inside = true;
+          for (unsigned int v = 0; v < NumberOfVertices; ++v)
+          {
+            inside = inside && lambda[v] >= -1e-9;
+          }
+          if (inside)
+          {
+            size_t p = 0;
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              p += static_cast<size_t>(idx[k]) * grid.stride[k];
+            }
+            int32_t current = owner[p].load(std::memory_order_relaxed);
+            const int32_t mine = static_cast<int32_t>(e);
+            while (mine < current && !owner[p].compare_exchange_weak(current, mine, std::memory_order_relaxed))
+            {
+            }
+          }
+          unsigned int k = 0;
+          for (; k < D; ++k)
+          {
+            if (++idx[k] <= hi[k])
+            {
+              break;
+            }
+            idx[k] = lo[k];
+          }
+          if (k == D)
+          {
+            break;
+          }
+        }
+      }
+    });
+    // second pass: weights of the owning element, clamped to [0,1] and renormalised
+    std::atomic<int64_t> uncovered{ -1 };
+    ParallelForChunks(threader, n, [&](size_t b, size_t end) {
+      for (size_t p = b; p < end; ++p)
+      {
+        const int32_t e = owner[p].load(std::memory_order_relaxed);
+        if (e == std::numeric_limits<int32_t>::max())
+        {
+          uncovered.store(static_cast<int64_t>(p));
+          m_Element[p] = -1;
+          continue;
+        }
+        m_Element[p] = e;
+        double inv[D][D], x0[D];
+        Inverse(mesh, e, inv, x0);
+        const auto idx3 = grid.Index(p);
+        int64_t    idx[D];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          idx[k] = idx3[k];
+        }
+        double lambda[NumberOfVertices];
+        Barycentric(inv, x0, idx, lambda);
+        double sum = 0.0;
+        for (unsigned int v = 0; v < NumberOfVertices; ++v)
+        {
+          lambda[v] = std::min(1.0, std::max(0.0, lambda[v]));
+          sum += lambda[v];
+        }
+        for (unsigned int v = 0; v < NumberOfVertices; ++v)
+        {
+          m_Weights[p * NumberOfVertices + v] = static_cast<float>(lambda[v] / sum);
+        }
+      }
+    });
+    if (uncovered.load() >= 0)
+    {
+      itkGenericExceptionMacro("BarycentricMap: pixel " << uncovered.load()
+                                                        << " is not covered by any element: the mesh does not cover "
+                                                           "the image domain");
+    }
+    m_Mesh = &mesh;
+  }
+
+  const std::vector<int32_t> &
+  GetElements() const
+  {
+    return m_Element;
+  }
+  const std::vector<float> &
+  GetWeights() const
+  {
+    return m_Weights;
+  }
+
+  /** Consistent nodal load f_a = scale x sum_x phi_a(x) f(x) for a D-component pixel field (grid frame). */
+  void
+  Gather(const float * field, double scale, std::vector<double> & nodal, MultiThreaderBase * threader) const
+  {
+    const size_t nNodes = m_Mesh->NumberOfNodes();
+    const size_t n = m_Grid.numberOfPixels;
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(32, n / 8192));
+    const size_t chunk = (n + nChunks - 1) / nChunks;
+    std::vector<std::vector<double>> partial(nChunks);
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      auto & acc = partial[c];
+      acc.assign(nNodes * D, 0.0);
+      const size_t end = std::min(n, (c + 1) * chunk);
+      for (size_t p = c * chunk; p < end; ++p)
+      {
+        const auto & el = m_Mesh->elements[m_Element[p]];
+        for (unsigned int v = 0; v < NumberOfVertices; ++v)
+        {
+          const double w = m_Weights[p * NumberOfVertices + v];
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            acc[el[v] * D + k] += w * field[p * D + k];
+          }
+        }
+      }
+    });
+    nodal.assign(nNodes * D, 0.0);
+    for (const auto & acc : partial) // chunk order: deterministic
+    {
+      for (size_t i = 0; i < nodal.size(); ++i)
+      {
+        nodal[i] += scale * acc[i];
+      }
+    }
+  }
+
+  /** u(x) = scale x sum_a phi_a(x) u_a into a D-component pixel field. */
+  void
+  Interpolate(const std::vector<double> & nodal, double scale, float * field, MultiThreaderBase * threader) const
+  {
+    ParallelForChunks(threader, m_Grid.numberOfPixels, [&](size_t b, size_t end) {
+      for (size_t p = b; p < end; ++p)
+      {
+        const auto & el = m_Mesh->elements[m_Element[p]];
+        double       u[D] = {};
+        for (unsigned int v = 0; v < NumberOfVertices; ++v)
+        {
+          const double w = m_Weights[p * NumberOfVertices + v];
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            u[k] += w * nodal[el[v] * D + k];
+          }
+        }
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          field[p * D + k] = static_cast<float>(scale * u[k]);
+        }
+      }
+    });
+  }
+
+private:
+  static void
+  Inverse(const SimplexMesh<D> & mesh, size_t e, double (&inv)[D][D], double (&x0)[D])
+  {
+    double m[D][D];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      x0[r] = mesh.nodes[mesh.elements[e][0] * D + r];
+      for (unsigned int c = 0; c < D; ++c)
+      {
+        m[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - x0[r];
+      }
+    }
+    if (D == 2)
+    {
+      const double det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+      inv[0][0] = m[1][1] / det;
+      inv[0][1] = -m[0][1] / det;
+      inv[1][0] = -m[1][0] / det;
+      inv[1][1] = m[0][0] / det;
+    }
+    else
+    {
+      const double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
+                         m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+                         m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        for (unsigned int c = 0; c < D; ++c)
+        {
+          // cofactor transpose
+          const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
+          inv[r][c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
+        }
+      }
+    }
+  }
+
+  void
+  Barycentric(const double (&inv)[D][D], const double (&x0)[D], const int64_t * idx, double * lambda) const
+  {
+    double d[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      d[k] = static_cast<double>(idx[k]) * m_Grid.spacing[k] - x0[k];
+    }
+    double rest = 1.0;
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      double v = 0.0;
+      for (unsigned int c = 0; c < D; ++c)
+      {
+        v += inv[r][c] * d[c];
+      }
+      lambda[r + 1] = v;
+      rest -= v;
+    }
+    lambda[0] = rest;
+  }
+
+  Grid<D>                m_Grid;
+  const SimplexMesh<D> * m_Mesh{ nullptr };
+  std::vector<int32_t>   m_Element;
+  std::vector<float>     m_Weights;
+};
+} // namespace dmr
+} // namespace itk
+
+#endif

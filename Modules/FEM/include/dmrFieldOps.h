@@ -1,0 +1,161 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrFieldOps_h
+#define dmrFieldOps_h
+
+#include "dmrGrid.h"
+#include <vector>
+#include <cmath>
+
+namespace itk
+{
+namespace dmr
+{
+/** Displacement-field algebra on flat grid-frame fields (D interleaved floats, mm along the image axes), written
+ * for data-parallel execution (one independent output pixel per work item, no allocation inside the loops).
+ * \ingroup DynamicMeshRegistration */
+
+/** out(x) = v(x) + w(x + v(x)): the displacement of W o V where W(x) = x + w(x), V(x) = x + v(x).
+ * w is sampled multilinearly (clamped at the border). out may not alias w; it may alias v. */
+template <unsigned int D>
+void
+ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * out, MultiThreaderBase * threader)
+{
+  ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      const auto idx = grid.Index(p);
+      double     c[D], s[D] = {};
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
+      }
+      InterpolateAdd<D, D>(grid, w, c, 1.0, s);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        out[p * D + k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
+      }
+    }
+  });
+}
+
+/** Largest displacement in pixel units (max over pixels and axes of |v_k| / spacing_k). */
+template <unsigned int D>
+double
+MaximumDisplacementInPixels(const Grid<D> & grid, const float * v)
+{
+  double m = 0.0;
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      m = std::max(m, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+    }
+  }
+  return m;
+}
+
+/** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until its largest
+ * displacement is below half a pixel, then the field is composed with itself as many times. scratch is resized as
+ * needed. Returns the number of squarings. */
+template <unsigned int D>
+unsigned int
+ExponentialField(const Grid<D> &      grid,
+                 const float *        v,
+                 float *              out,
+                 std::vector<float> & scratch,
+                 MultiThreaderBase *  threader)
+{
+  const size_t n = grid.numberOfPixels * D;
+  const double maxNorm = MaximumDisplacementInPixels<D>(grid, v);
+  unsigned int squarings = 0;
+  while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
+  {
+    ++squarings;
+  }
+  const float scale = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
+  for (size_t i = 0; i < n; ++i)
+  {
+    out[i] = v[i] * scale;
+  }
+  scratch.resize(n);
+  for (unsigned int s = 0; s < squarings; ++s)
+  {
+    std::copy(out, out + n, scratch.begin());
+    ComposeFields<D>(grid, scratch.data(), scratch.data(), out, threader); // out = e o e
+  }
+  return squarings;
+}
+
+/** det(I + grad u) at every pixel (central differences, one-sided at the border; grid frame, so the value is the
+ * physical Jacobian determinant). Writes into jac and returns {min, max}. */
+template <unsigned int D>
+std::pair<double, double>
+JacobianDeterminant(const Grid<D> & grid, const float * u, float * jac, MultiThreaderBase * threader)
+{
+  const size_t                         nChunks = 64;
+  std::vector<std::pair<double, double>> partial(nChunks, { std::numeric_limits<double>::max(), -std::numeric_limits<double>::max() });
+  const size_t                         chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
+    auto &       mm = partial[c];
+    for (size_t p = c * chunk; p < end; ++p)
+    {
+      const auto idx = grid.Index(p);
+      double     J[D][D];
+      for (unsigned int k = 0; k < D; ++k) // derivative along axis k
+      {
+        const int64_t nk = static_cast<int64_t>(grid.size[k]);
+        const size_t  lo = idx[k] > 0 ? p - grid.stride[k] : p;
+        const size_t  hi = idx[k] + 1 < nk ? p + grid.stride[k] : p;
+        const double  h = static_cast<double>((hi - lo) / grid.stride[k]) * grid.spacing[k];
+        for (unsigned int r = 0; r < D; ++r)
+        {
+          J[r][k] = (r == k ? 1.0 : 0.0) + (h > 0 ? (static_cast<double>(u[hi * D + r]) - u[lo * D + r]) / h : 0.0);
+        }
+      }
+      double det;
+      if (D == 2)
+      {
+        det = J[0][0] * J[1][1] - J[0][1] * J[1][0];
+      }
+      else
+      {
+        det = J[0][0] * (J[1][1] * J[2][2] - J[1][2] * J[2][1]) - J[0][1] * (J[1][0] * J[2][2] - J[1][2] * J[2][0]) +
+              J[0][2] * (J[1][0] * J[2][1] - J[1][1] * J[2][0]);
+      }
+      if (jac)
+      {
+        jac[p] = static_cast<float>(det);
+      }
+      mm.first = std::min(mm.first, det);
+      mm.second = std::max(mm.second, det);
+    }
+  });
+  std::pair<double, double> r = partial[0];
+  for (const auto & mm : partial)
+  {
+    r.first = std::min(r.first, mm.first);
+    r.second = std::max(r.second, mm.second);
+  }
+  return r;
+}
+} // namespace dmr
+} // namespace itk
+
+#endif

@@ -1,0 +1,110 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkLinearElasticFEMSolver_h
+#define itkLinearElasticFEMSolver_h
+
+#include "itkObject.h"
+#include "itkObjectFactory.h"
+#include "itkMultiThreaderBase.h"
+#include "dmrSimplexMesh.h"
+#include "itk_eigen.h"
+#include ITK_EIGEN(Sparse)
+#include <memory>
+
+namespace itk
+{
+/** \class LinearElasticFEMSolver
+ * \brief P1 (linear simplex) isotropic linear-elastic stiffness and sparse solve, boundary nodes fixed.
+ *
+ * Discretises the Navier-Lame operator of paper Eq. 4 on a triangle/tetrahedron mesh in the grid frame (mm):
+ * K[(a,i),(b,j)] = sum_e V_e (lambda d_i phi_a d_j phi_b + mu d_j phi_a d_i phi_b + mu delta_ij grad phi_a . grad phi_b),
+ * i.e. the bilinear form of lambda div u div v + 2 mu eps(u):eps(v). Nodes flagged fixed (the image border) have
+ * u = 0 (paper 3): their degrees of freedom are eliminated, which leaves K symmetric positive definite; it is
+ * factorised once per mesh (Eigen SimplicialLDLT through ITK's bundled Eigen) and reused for every right-hand side.
+ * \ingroup DynamicMeshRegistration */
+template <unsigned int VDimension>
+class ITK_TEMPLATE_EXPORT LinearElasticFEMSolver : public Object
+{
+public:
+  ITK_DISALLOW_COPY_AND_MOVE(LinearElasticFEMSolver);
+  using Self = LinearElasticFEMSolver;
+  using Superclass = Object;
+  using Pointer = SmartPointer<Self>;
+  using ConstPointer = SmartPointer<const Self>;
+  itkNewMacro(Self);
+  itkTypeMacro(LinearElasticFEMSolver, Object);
+
+  static constexpr unsigned int Dimension = VDimension;
+  using MeshType = dmr::SimplexMesh<VDimension>;
+  using SparseMatrixType = Eigen::SparseMatrix<double>;
+  using VectorType = std::vector<double>;
+
+  /** Lame's first parameter (paper Eq. 4's lambda). */
+  itkSetClampMacro(Lambda, double, 0.0, NumericTraits<double>::max());
+  itkGetConstMacro(Lambda, double);
+  /** Shear modulus mu (> 0). */
+  itkSetClampMacro(Mu, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());
+  itkGetConstMacro(Mu, double);
+
+  /** Assembles and factorises K for a mesh (kept by pointer: it must outlive the solver's use). */
+  void
+  SetMesh(const MeshType & mesh);
+
+  /** Element stiffness (row/col index = vertex * D + component). */
+  void
+  ElementStiffness(const MeshType & mesh, size_t element, double * Ke) const;
+
+  /** The full stiffness matrix over all nodes (fixed ones included), index = node * D + component. */
+  const SparseMatrixType &
+  GetStiffnessMatrix() const
+  {
+    return m_K;
+  }
+
+  /** Solves K u = f for the free nodes with u = 0 on fixed nodes; f and u are node * D + component. */
+  void
+  Solve(const VectorType & f, VectorType & u) const;
+
+  /** Elastic energy u^T K u / 2. */
+  double
+  ElasticEnergy(const VectorType & u) const;
+
+  itkGetConstMacro(NumberOfFreeNodes, SizeValueType);
+
+protected:
+  LinearElasticFEMSolver() = default;
+  ~LinearElasticFEMSolver() override = default;
+  void
+  PrintSelf(std::ostream & os, Indent indent) const override;
+
+private:
+  double                 m_Lambda{ 1.0 };
+  double                 m_Mu{ 1.0 };
+  SizeValueType          m_NumberOfFreeNodes{ 0 };
+  const MeshType *       m_Mesh{ nullptr };
+  SparseMatrixType       m_K;
+  std::vector<int64_t>   m_FreeIndex; // dof -> index in the reduced system, -1 when fixed
+  std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;
+};
+} // namespace itk
+
+#ifndef ITK_MANUAL_INSTANTIATION
+#  include "itkLinearElasticFEMSolver.hxx"
+#endif
+
+#endif

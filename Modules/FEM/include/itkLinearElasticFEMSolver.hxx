@@ -1,0 +1,223 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkLinearElasticFEMSolver_hxx
+#define itkLinearElasticFEMSolver_hxx
+
+#include "itkLinearElasticFEMSolver.h"
+
+namespace itk
+{
+template <unsigned int D>
+void
+LinearElasticFEMSolver<D>::ElementStiffness(const MeshType & mesh, size_t e, double * Ke) const
+{
+  constexpr unsigned int NV = D + 1;
+  // gradients of the barycentric shape functions: rows of J^-1 for phi_1..phi_D, phi_0 = -(sum)
+  double J[D][D];
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    for (unsigned int c = 0; c < D; ++c)
+    {
+      J[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - mesh.nodes[mesh.elements[e][0] * D + r];
+    }
+  }
+  double inv[D][D];
+  double det;
+  if (D == 2)
+  {
+    det = J[0][0] * J[1][1] - J[0][1] * J[1][0];
+    inv[0][0] = J[1][1] / det;
+    inv[0][1] = -J[0][1] / det;
+    inv[1][0] = -J[1][0] / det;
+    inv[1][1] = J[0][0] / det;
+  }
+  else
+  {
+    det = J[0][0] * (J[1][1] * J[2][2] - J[1][2] * J[2][1]) - J[0][1] * (J[1][0] * J[2][2] - J[1][2] * J[2][0]) +
+          J[0][2] * (J[1][0] * J[2][1] - J[1][1] * J[2][0]);
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      for (unsigned int c = 0; c < D; ++c)
+      {
+        const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
+        inv[r][c] = (J[r1][c1] * J[r2][c2] - J[r1][c2] * J[r2][c1]) / det;
+      }
+    }
+  }
+  const double volume = std::abs(det) / (D == 2 ? 2.0 : 6.0);
+  double       g[NV][D];
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    g[0][k] = 0.0;
+  }
+  for (unsigned int a = 1; a < NV; ++a)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      g[a][k] = inv[a - 1][k];
+      g[0][k] -= g[a][k];
+    }
+  }
+  for (unsigned int a = 0; a < NV; ++a)
+  {
+    for (unsigned int b = 0; b < NV; ++b)
+    {
+      double dot = 0.0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        dot += g[a][k] * g[b][k];
+      }
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          Ke[(a * D + i) * NV * D + b * D + j] =
+            volume * (m_Lambda * g[a][i] * g[b][j] + m_Mu * g[a][j] * g[b][i] + (i == j ? m_Mu * dot : 0.0));
+        }
+      }
+    }
+  }
+}
+
+template <unsigned int D>
+void
+LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
+{
+  constexpr unsigned int NV = D + 1;
+  const size_t           nDof = mesh.NumberOfNodes() * D;
+  std::vector<Eigen::Triplet<double>> triplets;
+  triplets.reserve(mesh.elements.size() * NV * NV * D * D);
+  double Ke[NV * D * NV * D];
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    ElementStiffness(mesh, e, Ke);
+    for (unsigned int a = 0; a < NV; ++a)
+    {
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int b = 0; b < NV; ++b)
+        {
+          for (unsigned int j = 0; j < D; ++j)
+          {
+            triplets.emplace_back(mesh.elements[e][a] * D + i, mesh.elements[e][b] * D + j,
+                                  Ke[(a * D + i) * NV * D + b * D + j]);
+          }
+        }
+      }
+    }
+  }
+  m_K.resize(static_cast<Eigen::Index>(nDof), static_cast<Eigen::Index>(nDof));
+  m_K.setFromTriplets(triplets.begin(), triplets.end());
+
+  m_FreeIndex.assign(nDof, -1);
+  int64_t nFree = 0;
+  m_NumberOfFreeNodes = 0;
+  for (size_t i = 0; i < mesh.NumberOfNodes(); ++i)
+  {
+    if (mesh.fixed.empty() || !mesh.fixed[i])
+    {
+      ++m_NumberOfFreeNodes;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        m_FreeIndex[i * D + k] = nFree++;
+      }
+    }
+  }
+  std::vector<Eigen::Triplet<double>> reduced;
+  reduced.reserve(static_cast<size_t>(m_K.nonZeros()));
+  for (Eigen::Index c = 0; c < m_K.outerSize(); ++c)
+  {
+    for (SparseMatrixType::InnerIterator it(m_K, c); it; ++it)
+    {
+      const int64_t r = m_FreeIndex[it.row()], cc = m_FreeIndex[it.col()];
+      if (r >= 0 && cc >= 0)
+      {
+        reduced.emplace_back(r, cc, it.value());
+      }
+    }
+  }
+  SparseMatrixType Kf(nFree, nFree);
+  Kf.setFromTriplets(reduced.begin(), reduced.end());
+  m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
+  if (nFree > 0)
+  {
+    m_Factor->compute(Kf);
+    if (m_Factor->info() != Eigen::Success)
+    {
+      itkExceptionMacro("the stiffness matrix could not be factorised (mesh with " << mesh.NumberOfNodes()
+                                                                                   << " nodes, " << nFree
+                                                                                   << " free degrees of freedom)");
+    }
+  }
+  m_Mesh = &mesh;
+  this->Modified();
+}
+
+template <unsigned int D>
+void
+LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
+{
+  if (m_Mesh == nullptr)
+  {
+    itkExceptionMacro("Solve() needs SetMesh() first");
+  }
+  const size_t    nDof = m_FreeIndex.size();
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(m_NumberOfFreeNodes * D));
+  for (size_t i = 0; i < nDof; ++i)
+  {
+    if (m_FreeIndex[i] >= 0)
+    {
+      rhs[m_FreeIndex[i]] = f[i];
+    }
+  }
+  u.assign(nDof, 0.0);
+  if (rhs.size() == 0)
+  {
+    return;
+  }
+  const Eigen::VectorXd x = m_Factor->solve(rhs);
+  for (size_t i = 0; i < nDof; ++i)
+  {
+    if (m_FreeIndex[i] >= 0)
+    {
+      u[i] = x[m_FreeIndex[i]];
+    }
+  }
+}
+
+template <unsigned int D>
+double
+LinearElasticFEMSolver<D>::ElasticEnergy(const VectorType & u) const
+{
+  Eigen::Map<const Eigen::VectorXd> x(u.data(), static_cast<Eigen::Index>(u.size()));
+  return 0.5 * x.dot(m_K * x);
+}
+
+template <unsigned int D>
+void
+LinearElasticFEMSolver<D>::PrintSelf(std::ostream & os, Indent indent) const
+{
+  Superclass::PrintSelf(os, indent);
+  os << indent << "Lambda: " << m_Lambda << std::endl;
+  os << indent << "Mu: " << m_Mu << std::endl;
+  os << indent << "NumberOfFreeNodes: " << m_NumberOfFreeNodes << std::endl;
+  os << indent << "NumberOfDegreesOfFreedom: " << m_K.rows() << std::endl;
+}
+} // namespace itk
+
+#endif

@@ -1,0 +1,255 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkFEMRegistrationMethod_h
+#define itkFEMRegistrationMethod_h
+
+#include "itkProcessObject.h"
+#include "itkDataObjectDecorator.h"
+#include "itkDisplacementFieldTransform.h"
+#include "itkDynamicMeshRegistrationEnums.h"
+#include "itkDensityFieldFilter.h"
+#include "itkDiscreteCVTFilter.h"
+#include "itkDualMeshFilter.h"
+#include "itkLinearElasticFEMSolver.h"
+#include "dmrBarycentricMap.h"
+#include "dmrFieldOps.h"
+
+namespace itk
+{
+/** \class FEMRegistrationMethod
+ * \brief FEM-based deformable registration on a dynamic mesh (Cai, Guo, Zhong, Mao 2015).
+ *
+ * Finds W(x) = x + u(x) so that the moving (source) image S o W matches the fixed (target) image T, minimising
+ * MSSD(T, S o W) + beta R(W) (paper Eq. 1, 3) with R the linear-elastic energy. Each iteration k (paper 3, 4.7):
+ *  1. DensityFieldFilter: force f (Eq. 5) of T vs S o W over the pyramid and density d = |f|^2 + alpha (Eq. 9);
+ *  2. mesh: Dynamic mode rebuilds it from d: DiscreteCVTFilter (contraction at k = 1, then warm-started swaps) and
+ *     DualMeshFilter; Regular and Static modes keep one mesh;
+ *  3. barycentric coordinates of every pixel; nodal forces f_a = sum_x phi_a(x) f(x) dV;
+ *  4. LinearElasticFEMSolver: K u = f / beta with the boundary nodes fixed (Eq. 7); beta is set at k = 1 so that
+ *     beta R / D = EnergyRatio (paper 5.1: 0.02). With u = K^-1 f / beta, R = f^T K^-1 f / (2 beta^2), hence
+ *     beta = f^T K^-1 f / (2 EnergyRatio D);
+ *  5. the nodal update is interpolated to the pixels and applied by the diffeomorphic rule W <- W o exp(u) (Eq. 8),
+ *     exp by scaling and squaring.
+ * Inputs: FixedImage, MovingImage (any grid: sampled through physical space), optional StaticMesh (physical
+ * itk::Mesh of triangles for MeshMode Static). Output 0: the transform (DisplacementFieldTransform, decorated),
+ * output 1: its displacement field on the fixed grid in mm (ITK convention: moving point = fixed point + u).
+ * Fires IterationEvent after every iteration (GetCurrentIteration, GetCurrentMesh, GetHistory are valid then) and
+ * ProgressEvent; honours AbortGenerateData between iterations.
+ *
+ * \par References
+ * Y. Cai, X. Guo, Z. Zhong, W. Mao, "Dynamic meshing for deformable image registration", Computer-Aided Design 58
+ * (2015) 141-150, doi:10.1016/j.cad.2014.08.009.
+ * \ingroup DynamicMeshRegistration */
+template <typename TFixedImage,
+          typename TMovingImage = TFixedImage,
+          typename TDisplacementField = Image<Vector<float, TFixedImage::ImageDimension>, TFixedImage::ImageDimension>>
+class ITK_TEMPLATE_EXPORT FEMRegistrationMethod : public ProcessObject
+{
+public:
+  ITK_DISALLOW_COPY_AND_MOVE(FEMRegistrationMethod);
+  using Self = FEMRegistrationMethod;
+  using Superclass = ProcessObject;
+  using Pointer = SmartPointer<Self>;
+  using ConstPointer = SmartPointer<const Self>;
+  itkNewMacro(Self);
+  itkTypeMacro(FEMRegistrationMethod, ProcessObject);
+
+  static constexpr unsigned int ImageDimension = TFixedImage::ImageDimension;
+  using FixedImageType = TFixedImage;
+  using MovingImageType = TMovingImage;
+  using DisplacementFieldType = TDisplacementField;
+  using DensityImageType = Image<float, ImageDimension>;
+  using LabelImageType = Image<int32_t, ImageDimension>;
+  using MeshType = Mesh<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double>>;
+  using TransformType = DisplacementFieldTransform<double, ImageDimension>;
+  using DecoratedTransformType = DataObjectDecorator<TransformType>;
+  using DensityFilterType = DensityFieldFilter<FixedImageType, MovingImageType, DisplacementFieldType, DensityImageType>;
+  using CVTFilterType = DiscreteCVTFilter<DensityImageType, LabelImageType>;
+  using DualMeshFilterType = DualMeshFilter<LabelImageType, MeshType>;
+  using SolverType = LinearElasticFEMSolver<ImageDimension>;
+  using SimplexMeshType = dmr::SimplexMesh<ImageDimension>;
+  using MeshModeEnum = DynamicMeshRegistrationEnums::MeshMode;
+  using BackendEnum = DynamicMeshRegistrationEnums::Backend;
+  using DataObjectPointerArraySizeType = ProcessObject::DataObjectPointerArraySizeType;
+
+  /** One row of the energy history (values at the start of the iteration, before its update). */
+  struct IterationRecord
+  {
+    unsigned int iteration;
+    double       mssd;       // paper Eq. 3 (x pixel volume)
+    double       ssd;        // full-resolution SSD (x pixel volume)
+    double       elastic;    // R of the current transformation on this iteration's mesh
+    double       total;      // mssd + beta * elastic
+    size_t       nodes;
+    size_t       sweeps;     // CVT sweeps of this iteration (dynamic mode)
+    double       maxUpdate;  // largest update displacement (pixels)
+  };
+  /** Seconds per stage, summed over iterations (the breakdown of paper Table 1). */
+  struct Timing
+  {
+    double initialTessellation{ 0 };
+    double tessellationOptimization{ 0 };
+    double meshConstruction{ 0 };
+    double barycentric{ 0 };
+    double registration{ 0 };
+    double total{ 0 };
+  };
+
+  itkSetInputMacro(FixedImage, FixedImageType);
+  itkGetInputMacro(FixedImage, FixedImageType);
+  itkSetInputMacro(MovingImage, MovingImageType);
+  itkGetInputMacro(MovingImage, MovingImageType);
+  itkSetInputMacro(StaticMesh, MeshType);
+  itkGetInputMacro(StaticMesh, MeshType);
+
+  itkSetClampMacro(NumberOfIterations, unsigned int, 1, NumericTraits<unsigned int>::max());
+  itkGetConstMacro(NumberOfIterations, unsigned int);
+  /** Number of mesh nodes (CVT cells) of the dynamic mesh. */
+  itkSetClampMacro(NumberOfNodes, SizeValueType, 4, NumericTraits<SizeValueType>::max());
+  itkGetConstMacro(NumberOfNodes, SizeValueType);
+  itkSetClampMacro(NumberOfLevels, unsigned int, 1, 8);
+  itkGetConstMacro(NumberOfLevels, unsigned int);
+  itkSetClampMacro(Lambda, double, 0.0, NumericTraits<double>::max());
+  itkGetConstMacro(Lambda, double);
+  itkSetClampMacro(Mu, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());
+  itkGetConstMacro(Mu, double);
+  /** beta R / D at the first iteration (paper 5.1: 0.02). */
+  itkSetClampMacro(EnergyRatio, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());
+  itkGetConstMacro(EnergyRatio, double);
+  /** alpha = AlphaFactor x mean |f|^2 (paper 5.1: 0.1). */
+  itkSetClampMacro(AlphaFactor, double, 0.0, NumericTraits<double>::max());
+  itkGetConstMacro(AlphaFactor, double);
+  /** CVT stopping tolerance (paper 5.1: 0). */
+  itkSetClampMacro(CVTEpsilon, double, 0.0, 1.0);
+  itkGetConstMacro(CVTEpsilon, double);
+  itkSetClampMacro(MaximumNumberOfSweeps, SizeValueType, 1, NumericTraits<SizeValueType>::max());
+  itkGetConstMacro(MaximumNumberOfSweeps, SizeValueType);
+  itkSetEnumMacro(MeshMode, MeshModeEnum);
+  itkGetEnumMacro(MeshMode, MeshModeEnum);
+  /** Nodes per axis of the Regular mesh; 0 = round(NumberOfNodes^(1/D)). */
+  itkSetMacro(RegularGridSize, unsigned int);
+  itkGetConstMacro(RegularGridSize, unsigned int);
+  itkSetEnumMacro(Backend, BackendEnum);
+  itkGetEnumMacro(Backend, BackendEnum);
+  itkGetConstMacro(BackendUsed, BackendEnum);
+
+  /** Results. */
+  itkGetConstMacro(Beta, double);
+  itkGetConstMacro(CurrentIteration, unsigned int);
+  const std::vector<IterationRecord> &
+  GetHistory() const
+  {
+    return m_History;
+  }
+  const Timing &
+  GetTiming() const
+  {
+    return m_Timing;
+  }
+  /** Final (after the last update) full-resolution SSD and MSSD, x pixel volume. */
+  itkGetConstMacro(FinalSSD, double);
+  itkGetConstMacro(FinalMSSD, double);
+  /** The mesh of the current iteration (physical space), valid in an IterationEvent observer and after Update. */
+  const MeshType *
+  GetCurrentMesh();
+  const SimplexMeshType &
+  GetCurrentSimplexMesh() const
+  {
+    return *m_CurrentMesh;
+  }
+  /** The CVT labels of the current iteration (dynamic mode; nullptr otherwise). */
+  const LabelImageType *
+  GetCurrentLabels() const
+  {
+    return m_Labels.GetPointer();
+  }
+  /** Current density (valid in an IterationEvent observer). */
+  const DensityImageType *
+  GetCurrentDensity() const
+  {
+    return m_DensityFilter->GetOutput();
+  }
+
+  DecoratedTransformType *
+  GetTransformOutput();
+  const TransformType *
+  GetTransform();
+  DisplacementFieldType *
+  GetDisplacementField();
+
+protected:
+  FEMRegistrationMethod();
+  ~FEMRegistrationMethod() override = default;
+  void
+  PrintSelf(std::ostream & os, Indent indent) const override;
+  void
+  VerifyPreconditions() ITKv5_CONST override;
+  void
+  GenerateOutputInformation() override;
+  void
+  GenerateInputRequestedRegion() override;
+  void
+  GenerateData() override;
+  using Superclass::MakeOutput;
+  DataObject::Pointer
+  MakeOutput(DataObjectPointerArraySizeType idx) override;
+
+private:
+  void
+  WriteGridFieldToImage(const std::vector<float> & grid, DisplacementFieldType * image) const;
+
+  unsigned int  m_NumberOfIterations{ 100 };
+  SizeValueType m_NumberOfNodes{ 100 };
+  unsigned int  m_NumberOfLevels{ 3 };
+  double        m_Lambda{ 1.0 };
+  double        m_Mu{ 1.0 };
+  double        m_EnergyRatio{ 0.02 };
+  double        m_AlphaFactor{ 0.1 };
+  double        m_CVTEpsilon{ 0.0 };
+  SizeValueType m_MaximumNumberOfSweeps{ 1000 };
+  MeshModeEnum  m_MeshMode{ MeshModeEnum::Dynamic };
+  unsigned int  m_RegularGridSize{ 0 };
+  BackendEnum   m_Backend{ BackendEnum::Auto };
+  BackendEnum   m_BackendUsed{ BackendEnum::CPU };
+
+  double                       m_Beta{ 0.0 };
+  unsigned int                 m_CurrentIteration{ 0 };
+  double                       m_FinalSSD{ 0.0 };
+  double                       m_FinalMSSD{ 0.0 };
+  std::vector<IterationRecord> m_History;
+  Timing                       m_Timing;
+
+  typename DensityFilterType::Pointer  m_DensityFilter;
+  typename CVTFilterType::Pointer      m_CVTFilter;
+  typename DualMeshFilterType::Pointer m_DualMeshFilter;
+  typename SolverType::Pointer         m_Solver;
+  typename LabelImageType::Pointer     m_Labels;
+  SimplexMeshType                      m_StaticSimplexMesh;
+  const SimplexMeshType *              m_CurrentMesh{ nullptr };
+  typename MeshType::Pointer           m_CurrentItkMesh;
+  const SimplexMeshType *              m_CurrentItkMeshSource{ nullptr };
+  size_t                               m_CurrentMeshVersion{ 0 };
+  size_t                               m_CurrentItkMeshVersion{ 0 };
+};
+} // namespace itk
+
+#ifndef ITK_MANUAL_INSTANTIATION
+#  include "itkFEMRegistrationMethod.hxx"
+#endif
+
+#endif

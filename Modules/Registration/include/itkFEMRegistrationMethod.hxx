@@ -1,0 +1,440 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef itkFEMRegistrationMethod_hxx
+#define itkFEMRegistrationMethod_hxx
+
+#include "itkFEMRegistrationMethod.h"
+#include "itkImageRegionConstIterator.h"
+#include "dmrCudaBackend.h"
+#include <chrono>
+
+namespace itk
+{
+template <typename TF, typename TM, typename TD>
+FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
+{
+  this->SetPrimaryInputName("FixedImage");
+  this->AddRequiredInputName("MovingImage");
+  this->AddOptionalInputName("StaticMesh");
+  this->SetNumberOfRequiredOutputs(2);
+  this->SetNthOutput(0, this->MakeOutput(0));
+  this->SetNthOutput(1, this->MakeOutput(1));
+  m_DensityFilter = DensityFilterType::New();
+  m_CVTFilter = CVTFilterType::New();
+  m_DualMeshFilter = DualMeshFilterType::New();
+  m_Solver = SolverType::New();
+}
+
+template <typename TF, typename TM, typename TD>
+DataObject::Pointer
+FEMRegistrationMethod<TF, TM, TD>::MakeOutput(DataObjectPointerArraySizeType idx)
+{
+  if (idx == 0)
+  {
+    auto decorated = DecoratedTransformType::New();
+    decorated->Set(TransformType::New());
+    return decorated.GetPointer();
+  }
+  return DisplacementFieldType::New().GetPointer();
+}
+
+template <typename TF, typename TM, typename TD>
+auto
+FEMRegistrationMethod<TF, TM, TD>::GetTransformOutput() -> DecoratedTransformType *
+{
+  return static_cast<DecoratedTransformType *>(this->ProcessObject::GetOutput(0));
+}
+
+template <typename TF, typename TM, typename TD>
+auto
+FEMRegistrationMethod<TF, TM, TD>::GetTransform() -> const TransformType *
+{
+  return this->GetTransformOutput()->Get();
+}
+
+template <typename TF, typename TM, typename TD>
+auto
+FEMRegistrationMethod<TF, TM, TD>::GetDisplacementField() -> DisplacementFieldType *
+{
+  return static_cast<DisplacementFieldType *>(this->ProcessObject::GetOutput(1));
+}
+
+template <typename TF, typename TM, typename TD>
+auto
+FEMRegistrationMethod<TF, TM, TD>::GetCurrentMesh() -> const MeshType *
+{
+  if (m_CurrentMesh == nullptr)
+  {
+    return nullptr;
+  }
+  if (m_CurrentItkMesh.IsNull() || m_CurrentItkMeshVersion != m_CurrentMeshVersion)
+  {
+    m_CurrentItkMesh = dmr::ToItkMesh<ImageDimension, MeshType>(*m_CurrentMesh, this->GetFixedImage());
+    m_CurrentItkMeshVersion = m_CurrentMeshVersion;
+  }
+  return m_CurrentItkMesh.GetPointer();
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
+{
+  Superclass::VerifyPreconditions();
+  const auto size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
+  SizeValueType pixels = 1;
+  for (unsigned int k = 0; k < ImageDimension; ++k)
+  {
+    if (size[k] < 4)
+    {
+      itkExceptionMacro("the fixed image needs at least 4 pixels along every axis; axis " << k << " has " << size[k]);
+    }
+    pixels *= size[k];
+  }
+  if (m_MeshMode == MeshModeEnum::Dynamic && m_NumberOfNodes > pixels)
+  {
+    itkExceptionMacro("NumberOfNodes (" << m_NumberOfNodes << ") exceeds the number of pixels (" << pixels << ")");
+  }
+  if (m_MeshMode == MeshModeEnum::Static && this->GetStaticMesh() == nullptr)
+  {
+    itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
+  }
+  if (m_Backend == BackendEnum::CUDA)
+  {
+    itkExceptionMacro("the CUDA back-end of FEMRegistrationMethod is not available: "
+                      << (dmr::cuda::DeviceAvailable() ? std::string("its kernels are not part of this version")
+                                                       : dmr::cuda::UnavailableReason()));
+  }
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::GenerateInputRequestedRegion()
+{
+  for (auto & input : this->GetInputs())
+  {
+    if (auto * image = dynamic_cast<ImageBase<ImageDimension> *>(input.GetPointer()))
+    {
+      image->SetRequestedRegionToLargestPossibleRegion();
+    }
+  }
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::GenerateOutputInformation()
+{
+  Superclass::GenerateOutputInformation();
+  DisplacementFieldType * field = this->GetDisplacementField();
+  field->CopyInformation(this->GetFixedImage());
+  field->SetRegions(this->GetFixedImage()->GetLargestPossibleRegion());
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::WriteGridFieldToImage(const std::vector<float> & grid,
+                                                         DisplacementFieldType *    image) const
+{
+  const auto & dir = this->GetFixedImage()->GetDirection();
+  auto *       out = image->GetBufferPointer();
+  const size_t n = grid.size() / ImageDimension;
+  dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      for (unsigned int r = 0; r < ImageDimension; ++r)
+      {
+        double v = 0.0;
+        for (unsigned int k = 0; k < ImageDimension; ++k)
+        {
+          v += dir[r][k] * grid[p * ImageDimension + k];
+        }
+        out[p][r] = static_cast<typename DisplacementFieldType::PixelType::ValueType>(v);
+      }
+    }
+  });
+}
+
+namespace dmr
+{
+/** Intensity range of an image (whole buffer). */
+template <typename TImage>
+std::pair<double, double>
+IntensityRange(const TImage * image)
+{
+  double                           lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
+  ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    const double v = static_cast<double>(it.Get());
+    lo = std::min(lo, v);
+    hi = std::max(hi, v);
+  }
+  return { lo, hi };
+}
+} // namespace dmr
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::GenerateData()
+{
+  constexpr unsigned int D = ImageDimension;
+  using Clock = std::chrono::steady_clock;
+  auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
+  const auto tStart = Clock::now();
+
+  const FixedImageType *  fixed = this->GetFixedImage();
+  const MovingImageType * moving = this->GetMovingImage();
+  for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
+  {
+    if (!(range.second > range.first))
+    {
+      itkExceptionMacro("an input image has constant intensity " << range.first
+                                                                 << ": there is no force to register with (the "
+                                                                    "density alpha would be 0)");
+    }
+  }
+  m_BackendUsed = BackendEnum::CPU;
+  MultiThreaderBase * threader = this->GetMultiThreader();
+  const auto          grid = dmr::Grid<D>::FromImage(fixed);
+  const size_t        n = grid.numberOfPixels;
+  const double        dV = grid.PixelVolume();
+
+  // current transformation W(x) = x + w(x): grid-frame flat copy + physical image for the density filter
+  std::vector<float> w(n * D, 0.0f), update(n * D), expUpdate(n * D), composed(n * D), scratch;
+  DisplacementFieldType * field = this->GetDisplacementField();
+  field->SetBufferedRegion(field->GetLargestPossibleRegion());
+  field->Allocate();
+  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
+
+  m_DensityFilter->SetFixedImage(fixed);
+  m_DensityFilter->SetMovingImage(moving);
+  m_DensityFilter->SetDisplacementField(field);
+  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
+  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
+  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
+  m_CVTFilter->SetEpsilon(m_CVTEpsilon);
+  m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
+  m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  m_CVTFilter->SetBackend(BackendEnum::CPU);
+  m_Solver->SetLambda(m_Lambda);
+  m_Solver->SetMu(m_Mu);
+  m_Labels = nullptr;
+
+  m_History.clear();
+  m_Timing = Timing();
+  m_Beta = 0.0;
+  m_CurrentMesh = nullptr;
+  ++m_CurrentMeshVersion;
+  dmr::BarycentricMap<D> bary;
+  std::vector<double>    nodalForce, nodalU, nodalW;
+
+  if (m_MeshMode != MeshModeEnum::Dynamic)
+  {
+    auto t0 = Clock::now();
+    if (m_MeshMode == MeshModeEnum::Regular)
+    {
+      unsigned int perAxis = m_RegularGridSize;
+      if (perAxis == 0)
+      {
+        perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
+      }
+      std::array<size_t, D> nodes;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
+      }
+      m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
+    }
+    else
+    {
+      m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), fixed);
+    }
+    m_CurrentMesh = &m_StaticSimplexMesh;
+    m_Timing.meshConstruction += seconds(t0, Clock::now());
+    t0 = Clock::now();
+    bary.Build(grid, m_StaticSimplexMesh, threader); // throws when the static mesh does not cover the image
+    m_Timing.barycentric += seconds(t0, Clock::now());
+    t0 = Clock::now();
+    m_Solver->SetMesh(m_StaticSimplexMesh);
+    m_Timing.registration += seconds(t0, Clock::now());
+  }
+
+  for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
+  {
+    if (this->GetAbortGenerateData())
+    {
+      break;
+    }
+    m_CurrentIteration = it;
+    IterationRecord record{};
+    record.iteration = it;
+
+    // 1. force and density of T vs S o W
+    auto t0 = Clock::now();
+    field->Modified();
+    m_DensityFilter->Update();
+    record.mssd = m_DensityFilter->GetMSSD() * dV;
+    record.ssd = m_DensityFilter->GetSSD() * dV;
+    m_Timing.registration += seconds(t0, Clock::now());
+
+    // 2. dynamic mesh
+    if (m_MeshMode == MeshModeEnum::Dynamic)
+    {
+      m_CVTFilter->SetInput(m_DensityFilter->GetOutput());
+      if (m_Labels)
+      {
+        m_CVTFilter->SetInitialLabels(m_Labels); // warm start (paper 4.7)
+      }
+      m_CVTFilter->Update();
+      m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
+      m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
+      record.sweeps = m_CVTFilter->GetNumberOfSweeps();
+      // take the labels and sites out of the CVT pipeline so the dual mesh update cannot re-run the CVT
+      typename LabelImageType::Pointer labels = m_CVTFilter->GetOutput();
+      labels->DisconnectPipeline();
+      m_Labels = labels;
+      auto sites = CVTFilterType::SitesType::New();
+      sites->SetPoints(m_CVTFilter->GetSites()->GetPoints());
+
+      t0 = Clock::now();
+      m_DualMeshFilter->SetInput(m_Labels);
+      m_DualMeshFilter->SetSites(sites);
+      m_DualMeshFilter->Modified();
+      m_DualMeshFilter->Update();
+      m_CurrentMesh = &m_DualMeshFilter->GetSimplexMesh();
+      ++m_CurrentMeshVersion;
+      m_Timing.meshConstruction += seconds(t0, Clock::now());
+
+      t0 = Clock::now();
+      bary.Build(grid, *m_CurrentMesh, threader);
+      m_Timing.barycentric += seconds(t0, Clock::now());
+      t0 = Clock::now();
+      m_Solver->SetMesh(*m_CurrentMesh);
+      m_Timing.registration += seconds(t0, Clock::now());
+    }
+    record.nodes = m_CurrentMesh->NumberOfNodes();
+
+    // 3-5. nodal forces, solve, beta, interpolate, exponential update
+    t0 = Clock::now();
+    bary.Gather(m_DensityFilter->GetGridForce().data(), dV, nodalForce, threader);
+    m_Solver->Solve(nodalForce, nodalU);
+    double fKf = 0.0;
+    for (size_t i = 0; i < nodalU.size(); ++i)
+    {
+      fKf += nodalForce[i] * nodalU[i];
+    }
+    if (it == 1 || m_Beta == 0.0)
+    {
+      if (!(fKf > 0.0) || !(record.mssd > 0.0))
+      {
+        // the images already match (no force): nothing to register
+        m_History.push_back(record);
+        m_Timing.registration += seconds(t0, Clock::now());
+        break;
+      }
+      m_Beta = fKf / (2.0 * m_EnergyRatio * record.mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
+    }
+    // R of the current transformation on this mesh: nodal values of w sampled at the nodes
+    const SimplexMeshType & mesh = *m_CurrentMesh;
+    nodalW.assign(mesh.NumberOfNodes() * D, 0.0);
+    for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+    {
+      double c[D];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        c[k] = mesh.nodes[a * D + k] / grid.spacing[k];
+      }
+      dmr::InterpolateAdd<D, D>(grid, w.data(), c, 1.0, &nodalW[a * D]);
+    }
+    record.elastic = m_Solver->ElasticEnergy(nodalW);
+    record.total = record.mssd + m_Beta * record.elastic;
+
+    bary.Interpolate(nodalU, 1.0 / m_Beta, update.data(), threader); // u = K^-1 f / beta at every pixel
+    record.maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
+    dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), scratch, threader);
+    dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), composed.data(), threader); // W <- W o exp(u)
+    w.swap(composed);
+    this->WriteGridFieldToImage(w, field);
+    m_Timing.registration += seconds(t0, Clock::now());
+
+    m_History.push_back(record);
+    this->InvokeEvent(IterationEvent());
+    this->UpdateProgress(static_cast<float>(it) / static_cast<float>(m_NumberOfIterations));
+  }
+
+  // final similarity with the final field
+  auto t0 = Clock::now();
+  field->Modified();
+  m_DensityFilter->Update();
+  m_FinalSSD = m_DensityFilter->GetSSD() * dV;
+  m_FinalMSSD = m_DensityFilter->GetMSSD() * dV;
+  m_Timing.registration += seconds(t0, Clock::now());
+
+  // transform output (double field, as ResampleImageFilter expects)
+  using TransformFieldType = typename TransformType::DisplacementFieldType;
+  auto transformField = TransformFieldType::New();
+  transformField->CopyInformation(field);
+  transformField->SetRegions(field->GetLargestPossibleRegion());
+  transformField->Allocate();
+  const auto * src = field->GetBufferPointer();
+  auto *       dst = transformField->GetBufferPointer();
+  for (size_t p = 0; p < n; ++p)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      dst[p][k] = src[p][k];
+    }
+  }
+  auto transform = TransformType::New();
+  transform->SetDisplacementField(transformField);
+  this->GetTransformOutput()->Set(transform);
+  m_Timing.total = seconds(tStart, Clock::now());
+  this->UpdateProgress(1.0f);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) const
+{
+  Superclass::PrintSelf(os, indent);
+  os << indent << "NumberOfIterations: " << m_NumberOfIterations << std::endl;
+  os << indent << "NumberOfNodes: " << m_NumberOfNodes << std::endl;
+  os << indent << "NumberOfLevels: " << m_NumberOfLevels << std::endl;
+  os << indent << "Lambda: " << m_Lambda << std::endl;
+  os << indent << "Mu: " << m_Mu << std::endl;
+  os << indent << "EnergyRatio: " << m_EnergyRatio << std::endl;
+  os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
+  os << indent << "CVTEpsilon: " << m_CVTEpsilon << std::endl;
+  os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
+  os << indent << "MeshMode: " << m_MeshMode << std::endl;
+  os << indent << "RegularGridSize: " << m_RegularGridSize << std::endl;
+  os << indent << "Backend: " << m_Backend << std::endl;
+  os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
+  os << indent << "Beta: " << m_Beta << std::endl;
+  os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
+  os << indent << "FinalSSD: " << m_FinalSSD << std::endl;
+  os << indent << "FinalMSSD: " << m_FinalMSSD << std::endl;
+  os << indent << "History: " << m_History.size() << " iterations" << std::endl;
+  itkPrintSelfObjectMacro(DensityFilter);
+  itkPrintSelfObjectMacro(CVTFilter);
+  itkPrintSelfObjectMacro(DualMeshFilter);
+  itkPrintSelfObjectMacro(Solver);
+}
+} // namespace itk
+
+#endif

@@ -1,0 +1,17 @@
+# DMR_USE_CUDA defaults to ON when a CUDA compiler is found, so CI (no GPU, but nvcc) keeps compiling the kernels.
+include(CheckLanguage)
+check_language(CUDA)
+if(CMAKE_CUDA_COMPILER)
+  set(_dmr_cuda_default ON)
+else()
+  set(_dmr_cuda_default OFF)
+endif()
+option(DMR_USE_CUDA "Build the CUDA back-end" ${_dmr_cuda_default})
+if(DMR_USE_CUDA)
+  if(NOT DEFINED CMAKE_CUDA_ARCHITECTURES)
+    set(CMAKE_CUDA_ARCHITECTURES 90) # H100/H200; CUDA 13 rejects < 75
+  endif()
+  enable_language(CUDA)
+  set(CMAKE_CUDA_STANDARD 17)
+  find_package(CUDAToolkit REQUIRED)
+endif()
