@@ -1,0 +1,111 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrDualMeshPhantom_h
+#define dmrDualMeshPhantom_h
+
+#include "dmrTestHelpers.h"
+#include "itkDiscreteCVTFilter.h"
+#include "itkDualMeshFilter.h"
+
+namespace itk
+{
+namespace dmr
+{
+namespace test
+{
+/** A smooth positive 2D density (two Gaussian bumps on a floor) with the given geometry. */
+inline Image<float, 2>::Pointer
+SmoothDensity2D(const Image<float, 2>::SizeType &      size,
+                const Image<float, 2>::SpacingType &   spacing,
+                const Image<float, 2>::PointType &     origin,
+                const Image<float, 2>::DirectionType & direction)
+{
+  using ImageType = Image<float, 2>;
+  auto image = MakeImage<ImageType>(size, spacing, origin, direction, [](const ImageType::PointType &) { return 0.0f; });
+  // defined on the index grid so the pattern does not depend on the physical placement
+  ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    const double x = it.GetIndex()[0] / static_cast<double>(size[0]);
+    const double y = it.GetIndex()[1] / static_cast<double>(size[1]);
+    const double b1 = std::exp(-((x - 0.3) * (x - 0.3) + (y - 0.6) * (y - 0.6)) / 0.02);
+    const double b2 = std::exp(-((x - 0.7) * (x - 0.7) + (y - 0.3) * (y - 0.3)) / 0.05);
+    it.Set(static_cast<float>(0.2 + 3.0 * b1 + 1.5 * b2));
+  }
+  return image;
+}
+
+/** CVT labels and sites of a density, then its dual mesh. Keeps every pipeline object alive. */
+struct DualMeshPhantom
+{
+  using ImageType = Image<float, 2>;
+  using CVTFilterType = DiscreteCVTFilter<ImageType>;
+  using DualMeshFilterType = DualMeshFilter<CVTFilterType::LabelImageType>;
+
+  ImageType::Pointer          density;
+  CVTFilterType::Pointer      cvt;
+  DualMeshFilterType::Pointer dual;
+
+  DualMeshPhantom(const ImageType::SizeType &      size,
+                  const ImageType::SpacingType &   spacing,
+                  const ImageType::PointType &     origin,
+                  const ImageType::DirectionType & direction,
+                  SizeValueType                    numberOfCells)
+  {
+    density = SmoothDensity2D(size, spacing, origin, direction);
+    cvt = CVTFilterType::New();
+    cvt->SetInput(density);
+    cvt->SetNumberOfCells(numberOfCells);
+    cvt->Update();
+    dual = DualMeshFilterType::New();
+    dual->SetInput(cvt->GetOutput());
+    dual->SetSites(cvt->GetSites());
+    dual->Update();
+  }
+
+  Grid<2>
+  GetGrid() const
+  {
+    return Grid<2>::FromImage(density);
+  }
+  const SimplexMesh<2> &
+  GetMesh() const
+  {
+    return dual->GetSimplexMesh();
+  }
+};
+
+/** 64x48 density, spacing 0.8 x 1.3, rotated by -40 degrees, origin (-20, 35): non-trivial geometry everywhere. */
+inline DualMeshPhantom
+MakeDualMeshPhantom(SizeValueType numberOfCells = 20)
+{
+  using ImageType = Image<float, 2>;
+  ImageType::SizeType    size{ { 64, 48 } };
+  ImageType::SpacingType spacing;
+  spacing[0] = 0.8;
+  spacing[1] = 1.3;
+  ImageType::PointType origin;
+  origin[0] = -20.0;
+  origin[1] = 35.0;
+  return DualMeshPhantom(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318), numberOfCells);
+}
+} // namespace test
+} // namespace dmr
+} // namespace itk
+
+#endif
