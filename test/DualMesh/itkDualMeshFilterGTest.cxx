@@ -258,4 +258,48 @@ TEST(DualMeshFilter, BadLabelsThrow)
   filter3D->SetInput(labels3D);
   EXPECT_THROW(filter3D->Update(), itk::ExceptionObject); // 3D is not part of this version
 }
+/** Nodes on the box border, checked for exact placement and for sliver elements. */
+::testing::AssertionResult
+BorderNodesAreExactAndElementsAreNotSlivers(const itk::dmr::Grid<2> & grid, const itk::dmr::SimplexMesh<2> & mesh)
+{
+  const double hi[2] = { (grid.size[0] - 1) * grid.spacing[0], (grid.size[1] - 1) * grid.spacing[1] };
+  for (size_t i = 0; i < mesh.NumberOfNodes(); ++i)
+  {
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      const double x = mesh.nodes[2 * i + k];
+      const double tol = 1e-6 * grid.spacing[k];
+      if ((std::abs(x) <= tol && x != 0.0) || (std::abs(x - hi[k]) <= tol && x != hi[k]))
+      {
+        return ::testing::AssertionFailure() << "node " << i << " is " << (x - (std::abs(x) <= tol ? 0.0 : hi[k]))
+                                             << " mm off the border along axis " << k;
+      }
+    }
+  }
+  const double box = hi[0] * hi[1];
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    if (mesh.SignedMeasure(e) < 1e-6 * box / static_cast<double>(mesh.elements.size()))
+    {
+      return ::testing::AssertionFailure() << "element " << e << " is a sliver: area " << mesh.SignedMeasure(e);
+    }
+  }
+  return ::testing::AssertionSuccess();
+}
+
+TEST(DualMeshFilter, BorderNodesLieExactlyOnTheBoxWithUnitSpacing)
+{
+  const auto phantom = itk::dmr::test::MakeUnitSpacingDualMeshPhantom();
+  EXPECT_TRUE(BorderNodesAreExactAndElementsAreNotSlivers(phantom.GetGrid(), phantom.GetMesh()));
+}
+
+// Bug reproducer (disabled until the library is fixed, see the test report): a boundary cell's node is the mean of
+// its border pixels' positions (itkDualMeshFilter.hxx, sideSum / bestCount), which rounds off the border line for
+// non-integer spacing (50.399999999999999 instead of 50.400000000000006). CGAL then sees the border nodes as not
+// collinear and adds sliver triangles of area ~2e-13 spanning a whole side of the box.
+TEST(DualMeshFilter, DISABLED_BorderNodesLieExactlyOnTheBox)
+{
+  const auto phantom = MakeDualMeshPhantom();
+  EXPECT_TRUE(BorderNodesAreExactAndElementsAreNotSlivers(phantom.GetGrid(), phantom.GetMesh()));
+}
 } // namespace

@@ -104,6 +104,19 @@ MakeDualMeshPhantom(SizeValueType numberOfCells = 20)
   origin[1] = 35.0;
   return DualMeshPhantom(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318), numberOfCells);
 }
+/** The same density on a unit-spacing grid (rotated, shifted): border-pixel averages are exact there. */
+inline DualMeshPhantom
+MakeUnitSpacingDualMeshPhantom(SizeValueType numberOfCells = 20)
+{
+  using ImageType = Image<float, 2>;
+  ImageType::SizeType    size{ { 64, 48 } };
+  ImageType::SpacingType spacing;
+  spacing.Fill(1.0);
+  ImageType::PointType origin;
+  origin[0] = 7.0;
+  origin[1] = -3.0;
+  return DualMeshPhantom(size, spacing, origin, RotationDirection2D<ImageType>(0.3), numberOfCells);
+}
 } // namespace test
 } // namespace dmr
 } // namespace itk

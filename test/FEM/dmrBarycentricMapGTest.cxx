@@ -1,0 +1,263 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "dmrBarycentricMap.h"
+#include "dmrDualMeshPhantom.h"
+#include "dmrTestHelpers.h"
+#include "itkMultiThreaderBase.h"
+#include "gtest/gtest.h"
+
+#include <random>
+
+namespace
+{
+/** Barycentric coordinates of point x in element e, computed independently (Cramer's rule on the D+1 system). */
+template <unsigned int D>
+std::array<double, D + 1>
+ReferenceBarycentric(const itk::dmr::SimplexMesh<D> & mesh, size_t e, const std::array<double, D> & x)
+{
+  // solve [x_1-x_0 ... x_D-x_0] l = x - x_0 by Gaussian elimination with partial pivoting
+  double a[D][D + 1];
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    for (unsigned int c = 0; c < D; ++c)
+    {
+      a[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - mesh.nodes[mesh.elements[e][0] * D + r];
+    }
+    a[r][D] = x[r] - mesh.nodes[mesh.elements[e][0] * D + r];
+  }
+  for (unsigned int c = 0; c < D; ++c)
+  {
+    unsigned int pivot = c;
+    for (unsigned int r = c + 1; r < D; ++r)
+    {
+      if (std::abs(a[r][c]) > std::abs(a[pivot][c]))
+      {
+        pivot = r;
+      }
+    }
+    for (unsigned int k = 0; k <= D; ++k)
+    {
+      std::swap(a[c][k], a[pivot][k]);
+    }
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      if (r != c)
+      {
+        const double f = a[r][c] / a[c][c];
+        for (unsigned int k = 0; k <= D; ++k)
+        {
+          a[r][k] -= f * a[c][k];
+        }
+      }
+    }
+  }
+  std::array<double, D + 1> l;
+  l[0] = 1.0;
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    l[r + 1] = a[r][D] / a[r][r];
+    l[0] -= l[r + 1];
+  }
+  return l;
+}
+
+template <unsigned int D>
+void
+CheckEveryPixelLiesInOneElement(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
+{
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(2);
+  itk::dmr::BarycentricMap<D> map;
+  map.Build(grid, mesh, threader);
+  const auto & elements = map.GetElements();
+  const auto & weights = map.GetWeights();
+  ASSERT_EQ(elements.size(), grid.numberOfPixels);
+  ASSERT_EQ(weights.size(), grid.numberOfPixels * (D + 1));
+  size_t sharedPixels = 0;
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const int32_t e = elements[p];
+    ASSERT_GE(e, 0) << "pixel " << p;
+    ASSERT_LT(static_cast<size_t>(e), mesh.elements.size());
+    const auto x = itk::dmr::test::PixelPosition<D>(grid, p);
+    double     sum = 0.0;
+    double     y[D] = {};
+    for (unsigned int v = 0; v < D + 1; ++v)
+    {
+      const double w = weights[p * (D + 1) + v];
+      EXPECT_GE(w, 0.0);
+      EXPECT_LE(w, 1.0);
+      sum += w;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        y[k] += w * mesh.nodes[mesh.elements[e][v] * D + k];
+      }
+    }
+    EXPECT_NEAR(sum, 1.0, 1e-5) << "pixel " << p;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      EXPECT_NEAR(y[k], x[k], 1e-4) << "pixel " << p << " axis " << k << ": the weights do not reproduce it";
+    }
+    // the owner is the lowest-id element that contains the pixel (the documented tie rule)
+    size_t containing = 0;
+    for (size_t f = 0; f < mesh.elements.size(); ++f)
+    {
+      const auto l = ReferenceBarycentric<D>(mesh, f, x);
+      const bool inside = *std::min_element(l.begin(), l.end()) >= -1e-9;
+      if (inside)
+      {
+        EXPECT_GE(static_cast<int32_t>(f), e) << "pixel " << p << " lies in element " << f << " < owner " << e;
+        ++containing;
+      }
+      if (static_cast<int32_t>(f) == e)
+      {
+        EXPECT_TRUE(inside) << "pixel " << p << " is not inside its owner " << e;
+      }
+    }
+    sharedPixels += containing > 1;
+    if (::testing::Test::HasFailure())
+    {
+      return;
+    }
+  }
+  EXPECT_GT(sharedPixels, 0u) << "no pixel on a shared edge/face: the tie rule was not exercised";
+}
+
+TEST(BarycentricMap, EveryPixelLiesInOneElementOfARegularMesh2D)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 25, 21 }, std::array<double, 2>{ 1.0, 1.5 });
+  const auto              mesh = itk::dmr::MakeRegularMesh<2>(grid, { 7, 6 });
+  CheckEveryPixelLiesInOneElement<2>(grid, mesh);
+}
+
+TEST(BarycentricMap, EveryPixelLiesInOneElementOfARegularMesh3D)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 13, 10, 9 }, std::array<double, 3>{ 1.0, 1.2, 0.9 });
+  const auto              mesh = itk::dmr::MakeRegularMesh<3>(grid, { 5, 4, 5 });
+  CheckEveryPixelLiesInOneElement<3>(grid, mesh);
+}
+
+TEST(BarycentricMap, EveryPixelLiesInOneElementOfTheDualMesh)
+{
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom();
+  CheckEveryPixelLiesInOneElement<2>(phantom.GetGrid(), phantom.GetMesh());
+}
+
+template <unsigned int D>
+void
+CheckLinearFieldIsReproduced(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
+{
+  itk::dmr::BarycentricMap<D> map;
+  map.Build(grid, mesh, nullptr);
+  // u(x) = A x + b
+  double A[D][D], b[D];
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    b[r] = 1.5 - r;
+    for (unsigned int c = 0; c < D; ++c)
+    {
+      A[r][c] = 0.1 * (r + 1) - 0.07 * c + (r == c ? 0.3 : 0.0);
+    }
+  }
+  std::vector<double> nodal(mesh.NumberOfNodes() * D);
+  for (size_t i = 0; i < mesh.NumberOfNodes(); ++i)
+  {
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      nodal[i * D + r] = b[r];
+      for (unsigned int c = 0; c < D; ++c)
+      {
+        nodal[i * D + r] += A[r][c] * mesh.nodes[i * D + c];
+      }
+    }
+  }
+  std::vector<float> field(grid.numberOfPixels * D);
+  map.Interpolate(nodal, 2.0, field.data(), nullptr);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto x = itk::dmr::test::PixelPosition<D>(grid, p);
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      double expected = b[r];
+      for (unsigned int c = 0; c < D; ++c)
+      {
+        expected += A[r][c] * x[c];
+      }
+      ASSERT_NEAR(field[p * D + r], 2.0 * expected, 1e-4 * (1.0 + std::abs(expected))) << "pixel " << p;
+    }
+  }
+}
+
+TEST(BarycentricMap, InterpolateReproducesALinearField)
+{
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom();
+  CheckLinearFieldIsReproduced<2>(phantom.GetGrid(), phantom.GetMesh());
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 13, 10, 9 }, std::array<double, 3>{ 1.0, 1.2, 0.9 });
+  const auto              mesh = itk::dmr::MakeRegularMesh<3>(grid, { 4, 4, 3 });
+  CheckLinearFieldIsReproduced<3>(grid, mesh);
+}
+
+TEST(BarycentricMap, GatherConservesTheTotalLoad)
+{
+  // the shape functions are a partition of unity: sum_a f_a = scale sum_x f(x), per component
+  const auto         phantom = itk::dmr::test::MakeDualMeshPhantom();
+  const auto         grid = phantom.GetGrid();
+  const auto &       mesh = phantom.GetMesh();
+  std::mt19937       engine(3u);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> field(grid.numberOfPixels * 2);
+  double             total[2] = {};
+  for (size_t i = 0; i < field.size(); ++i)
+  {
+    field[i] = u(engine);
+    total[i % 2] += field[i];
+  }
+  itk::dmr::BarycentricMap<2> map;
+  map.Build(grid, mesh, nullptr);
+  std::vector<double> nodal;
+  map.Gather(field.data(), 0.5, nodal, nullptr);
+  ASSERT_EQ(nodal.size(), mesh.NumberOfNodes() * 2);
+  double sum[2] = {};
+  for (size_t i = 0; i < nodal.size(); ++i)
+  {
+    sum[i % 2] += nodal[i];
+  }
+  EXPECT_NEAR(sum[0], 0.5 * total[0], 1e-4);
+  EXPECT_NEAR(sum[1], 0.5 * total[1], 1e-4);
+  // a field that is 1 at one pixel only loads exactly the vertices of its element with its weights
+  std::vector<float> single(grid.numberOfPixels * 2, 0.0f);
+  const size_t       pixel = 17 + 23 * grid.size[0];
+  single[pixel * 2] = 1.0f;
+  map.Gather(single.data(), 1.0, nodal, nullptr);
+  const auto & element = mesh.elements[map.GetElements()[pixel]];
+  for (unsigned int v = 0; v < 3; ++v)
+  {
+    EXPECT_NEAR(nodal[element[v] * 2], map.GetWeights()[pixel * 3 + v], 1e-7);
+  }
+}
+
+TEST(BarycentricMap, MeshThatDoesNotCoverTheImageThrows)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 24, 20 }, std::array<double, 2>{ 1.0, 1.0 });
+  const itk::dmr::Grid<2> half(std::array<size_t, 2>{ 12, 20 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto              mesh = itk::dmr::MakeRegularMesh<2>(half, { 4, 5 });
+  itk::dmr::BarycentricMap<2> map;
+  EXPECT_THROW(map.Build(grid, mesh, nullptr), itk::ExceptionObject);
+}
+} // namespace

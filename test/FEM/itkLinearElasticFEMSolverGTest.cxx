@@ -1,0 +1,316 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "itkLinearElasticFEMSolver.h"
+#include "dmrDualMeshPhantom.h"
+#include "dmrObjectChecks.h"
+#include "dmrTestHelpers.h"
+#include "gtest/gtest.h"
+
+#include <random>
+
+namespace
+{
+constexpr double lambda = 2.5;
+constexpr double mu = 0.8;
+
+template <unsigned int D>
+typename itk::LinearElasticFEMSolver<D>::Pointer
+MakeSolver(const itk::dmr::SimplexMesh<D> & mesh)
+{
+  auto solver = itk::LinearElasticFEMSolver<D>::New();
+  solver->SetLambda(lambda);
+  solver->SetMu(mu);
+  solver->SetMesh(mesh);
+  return solver;
+}
+
+/** u_i = sum_j A[i][j] x_j + b_i at every node. */
+template <unsigned int D>
+std::vector<double>
+AffineNodalField(const itk::dmr::SimplexMesh<D> & mesh, const double (&A)[D][D], const double (&b)[D])
+{
+  std::vector<double> u(mesh.NumberOfNodes() * D);
+  for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+  {
+    for (unsigned int i = 0; i < D; ++i)
+    {
+      u[a * D + i] = b[i];
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        u[a * D + i] += A[i][j] * mesh.nodes[a * D + j];
+      }
+    }
+  }
+  return u;
+}
+
+Eigen::VectorXd
+Apply(const Eigen::SparseMatrix<double> & K, const std::vector<double> & u)
+{
+  return K * Eigen::Map<const Eigen::VectorXd>(u.data(), static_cast<Eigen::Index>(u.size()));
+}
+
+double
+MaxAbs(const Eigen::SparseMatrix<double> & K)
+{
+  double m = 0.0;
+  for (Eigen::Index c = 0; c < K.outerSize(); ++c)
+  {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(K, c); it; ++it)
+    {
+      m = std::max(m, std::abs(it.value()));
+    }
+  }
+  return m;
+}
+
+double
+BoxMeasure(const itk::dmr::SimplexMesh<2> & mesh)
+{
+  double m = 0.0;
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    m += mesh.SignedMeasure(e);
+  }
+  return m;
+}
+double
+BoxMeasure(const itk::dmr::SimplexMesh<3> & mesh)
+{
+  double m = 0.0;
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    m += mesh.SignedMeasure(e);
+  }
+  return m;
+}
+
+/** All the patch tests on one mesh. */
+template <unsigned int D>
+void
+CheckPatchTests(const itk::dmr::SimplexMesh<D> & mesh)
+{
+  const auto   solver = MakeSolver<D>(mesh);
+  const auto & K = solver->GetStiffnessMatrix();
+  const size_t nDof = mesh.NumberOfNodes() * D;
+  ASSERT_EQ(static_cast<size_t>(K.rows()), nDof);
+  ASSERT_EQ(static_cast<size_t>(K.cols()), nDof);
+  const double scale = MaxAbs(K);
+  ASSERT_GT(scale, 0.0);
+
+  // symmetric
+  const Eigen::SparseMatrix<double> transpose = K.transpose();
+  EXPECT_LE(MaxAbs(K - transpose), 1e-12 * scale);
+  // positive diagonal
+  for (size_t i = 0; i < nDof; ++i)
+  {
+    EXPECT_GT(K.coeff(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)), 0.0);
+  }
+
+  double extent = 0.0;
+  for (double x : mesh.nodes)
+  {
+    extent = std::max(extent, std::abs(x));
+  }
+
+  // rigid translation: no force anywhere, no energy
+  double zero[D][D] = {}, t[D];
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    t[i] = 0.7 - 0.4 * i;
+  }
+  const auto translation = AffineNodalField<D>(mesh, zero, t);
+  EXPECT_LE(Apply(K, translation).template lpNorm<Eigen::Infinity>(), 1e-11 * scale);
+  EXPECT_NEAR(solver->ElasticEnergy(translation), 0.0, 1e-11 * scale * nDof);
+
+  // infinitesimal rotation (skew A): zero strain, so no force and no energy
+  double W[D][D] = {}, b0[D] = {};
+  W[0][1] = 0.02;
+  W[1][0] = -0.02;
+  if (D == 3)
+  {
+    W[0][D - 1] = -0.013;
+    W[D - 1][0] = 0.013;
+    W[1][D - 1] = 0.031;
+    W[D - 1][1] = -0.031;
+  }
+  const auto rotation = AffineNodalField<D>(mesh, W, b0);
+  EXPECT_LE(Apply(K, rotation).template lpNorm<Eigen::Infinity>(), 1e-11 * scale * extent);
+  EXPECT_NEAR(solver->ElasticEnergy(rotation), 0.0, 1e-11 * scale * extent * extent * nDof);
+
+  // constant strain u = A x: zero net force at every node not on the boundary, and the exact strain energy
+  double A[D][D];
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    for (unsigned int j = 0; j < D; ++j)
+    {
+      A[i][j] = 0.01 * (1.0 + i + 2.0 * j) - (i == j ? 0.015 * (i + 1) : 0.0);
+    }
+  }
+  const auto            strain = AffineNodalField<D>(mesh, A, b0);
+  const Eigen::VectorXd force = Apply(K, strain);
+  double                maxForce = 0.0, maxInterior = 0.0;
+  size_t                interior = 0;
+  for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+  {
+    for (unsigned int i = 0; i < D; ++i)
+    {
+      maxForce = std::max(maxForce, std::abs(force[a * D + i]));
+      if (!mesh.fixed[a])
+      {
+        maxInterior = std::max(maxInterior, std::abs(force[a * D + i]));
+      }
+    }
+    interior += !mesh.fixed[a];
+  }
+  ASSERT_GT(interior, 0u);
+  EXPECT_GT(maxForce, 1e-3 * scale * 0.01 * extent) << "the boundary carries the traction: forces there";
+  EXPECT_LE(maxInterior, 1e-10 * scale * extent) << "constant-strain patch test failed at an interior node";
+  // W = |Omega| (lambda/2 tr(eps)^2 + mu eps:eps), exact for a linear field
+  double trace = 0.0, eps2 = 0.0;
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    trace += A[i][i];
+    for (unsigned int j = 0; j < D; ++j)
+    {
+      const double e = 0.5 * (A[i][j] + A[j][i]);
+      eps2 += e * e;
+    }
+  }
+  const double expected = BoxMeasure(mesh) * (0.5 * lambda * trace * trace + mu * eps2);
+  EXPECT_NEAR(solver->ElasticEnergy(strain), expected, 1e-9 * expected);
+
+  // Solve: K u = f at the free nodes, u = 0 at the fixed ones
+  std::mt19937                           engine(5u);
+  std::uniform_real_distribution<double> uniform(-1.0, 1.0);
+  std::vector<double>                    f(nDof), u;
+  for (auto & v : f)
+  {
+    v = uniform(engine);
+  }
+  solver->Solve(f, u);
+  ASSERT_EQ(u.size(), nDof);
+  const Eigen::VectorXd Ku = Apply(K, u);
+  double                fNorm = 0.0;
+  for (double v : f)
+  {
+    fNorm = std::max(fNorm, std::abs(v));
+  }
+  for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+  {
+    for (unsigned int i = 0; i < D; ++i)
+    {
+      if (mesh.fixed[a])
+      {
+        EXPECT_EQ(u[a * D + i], 0.0) << "fixed node " << a;
+      }
+      else
+      {
+        EXPECT_NEAR(Ku[a * D + i], f[a * D + i], 1e-9 * fNorm) << "free node " << a;
+      }
+    }
+  }
+  EXPECT_GT(solver->ElasticEnergy(u), 0.0);
+  EXPECT_EQ(solver->GetNumberOfFreeNodes(), interior);
+}
+
+TEST(LinearElasticFEMSolver, PatchTestsOnARegularMesh2D)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 24, 20 }, std::array<double, 2>{ 1.0, 1.5 });
+  CheckPatchTests<2>(itk::dmr::MakeRegularMesh<2>(grid, { 6, 5 }));
+}
+
+TEST(LinearElasticFEMSolver, PatchTestsOnADualMesh2D)
+{
+  const auto phantom = itk::dmr::test::MakeUnitSpacingDualMeshPhantom();
+  CheckPatchTests<2>(phantom.GetMesh());
+}
+
+// Bug reproducer (disabled until DualMeshFilter is fixed, see the test report and
+// DualMeshFilter.DISABLED_BorderNodesLieExactlyOnTheBox): with spacing 0.8 x 1.3 the dual mesh has sliver
+// triangles of area ~2e-13 along the border, K has entries ~1e13 and the constant-strain energy is off by 28%.
+TEST(LinearElasticFEMSolver, DISABLED_PatchTestsOnAnAnisotropicDualMesh2D)
+{
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom();
+  CheckPatchTests<2>(phantom.GetMesh());
+}
+
+TEST(LinearElasticFEMSolver, PatchTestsOnARegularMesh3D)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 10, 9, 8 }, std::array<double, 3>{ 1.0, 1.2, 0.9 });
+  CheckPatchTests<3>(itk::dmr::MakeRegularMesh<3>(grid, { 5, 4, 4 }));
+}
+
+TEST(LinearElasticFEMSolver, ElementStiffnessOfTheReferenceTriangle)
+{
+  // unit right triangle, lambda = 0, mu = 1: K = |T| (grad phi_a . grad phi_b I + grad phi_b grad phi_a^T)
+  itk::dmr::SimplexMesh<2> mesh;
+  mesh.nodes = { 0, 0, 1, 0, 0, 1 };
+  mesh.elements = { { 0, 1, 2 } };
+  auto solver = itk::LinearElasticFEMSolver<2>::New();
+  solver->SetLambda(0.0);
+  solver->SetMu(1.0);
+  double Ke[36];
+  solver->ElementStiffness(mesh, 0, Ke);
+  const double g[3][2] = { { -1, -1 }, { 1, 0 }, { 0, 1 } };
+  for (unsigned int a = 0; a < 3; ++a)
+  {
+    for (unsigned int i = 0; i < 2; ++i)
+    {
+      for (unsigned int b = 0; b < 3; ++b)
+      {
+        for (unsigned int j = 0; j < 2; ++j)
+        {
+          const double dot = g[a][0] * g[b][0] + g[a][1] * g[b][1];
+          const double expected = 0.5 * ((i == j ? dot : 0.0) + g[a][j] * g[b][i]);
+          EXPECT_NEAR(Ke[(a * 2 + i) * 6 + b * 2 + j], expected, 1e-14) << a << i << b << j;
+        }
+      }
+    }
+  }
+  // lambda adds |T| lambda d_i phi_a d_j phi_b
+  solver->SetLambda(3.0);
+  double Kl[36];
+  solver->ElementStiffness(mesh, 0, Kl);
+  EXPECT_NEAR(Kl[(1 * 2 + 0) * 6 + 2 * 2 + 1] - Ke[(1 * 2 + 0) * 6 + 2 * 2 + 1], 0.5 * 3.0 * g[1][0] * g[2][1], 1e-14);
+}
+
+TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
+{
+  auto solver = itk::LinearElasticFEMSolver<2>::New();
+  EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(solver.GetPointer(), "LinearElasticFEMSolver", "Object"));
+  EXPECT_TRUE(
+    itk::dmr::test::PrintMentions(solver.GetPointer(), { "Lambda", "Mu", "NumberOfFreeNodes", "NumberOfDegreesOfFreedom" }));
+  DMR_EXPECT_SET_GET(solver, Lambda, 4.5);
+  DMR_EXPECT_SET_GET(solver, Mu, 0.25);
+  solver->SetLambda(-1.0);
+  EXPECT_EQ(solver->GetLambda(), 0.0);
+  solver->SetMu(0.0);
+  EXPECT_GT(solver->GetMu(), 0.0);
+  std::vector<double> f(8, 1.0), u;
+  EXPECT_THROW(solver->Solve(f, u), itk::ExceptionObject);
+  // a mesh with only fixed nodes solves to zero
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 5, 5 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto              mesh = itk::dmr::MakeRegularMesh<2>(grid, { 2, 2 });
+  solver->SetMu(1.0);
+  solver->SetMesh(mesh);
+  EXPECT_EQ(solver->GetNumberOfFreeNodes(), 0u);
+  solver->Solve(f, u);
+  EXPECT_EQ(u, std::vector<double>(8, 0.0));
+}
+} // namespace
