@@ -1,0 +1,426 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "itkDensityFieldFilter.h"
+#include "dmrObjectChecks.h"
+#include "dmrTestHelpers.h"
+#include "gtest/gtest.h"
+
+namespace
+{
+using ImageType = itk::Image<float, 2>;
+using FilterType = itk::DensityFieldFilter<ImageType>;
+using FieldType = FilterType::DisplacementFieldType;
+
+ImageType::SpacingType
+Spacing(double sx, double sy)
+{
+  ImageType::SpacingType s;
+  s[0] = sx;
+  s[1] = sy;
+  return s;
+}
+
+ImageType::PointType
+Origin(double x, double y)
+{
+  ImageType::PointType p;
+  p[0] = x;
+  p[1] = y;
+  return p;
+}
+
+/** Smooth blob of intensity 100 (Gaussian, sigma 4 mm) centred at c, in physical space. */
+auto
+Blob(const ImageType::PointType & c)
+{
+  return [c](const ImageType::PointType & p) {
+    const double r2 = (p[0] - c[0]) * (p[0] - c[0]) + (p[1] - c[1]) * (p[1] - c[1]);
+    return static_cast<float>(100.0 * std::exp(-r2 / (2.0 * 4.0 * 4.0)));
+  };
+}
+
+FieldType::Pointer
+ConstantField(const ImageType * like, const FieldType::PixelType & value)
+{
+  auto field = FieldType::New();
+  field->CopyInformation(like);
+  field->SetRegions(like->GetLargestPossibleRegion());
+  field->Allocate();
+  field->FillBuffer(value);
+  return field;
+}
+
+TEST(DensityFieldFilter, BasicObjectMethodsPrintAndSetGet)
+{
+  auto filter = FilterType::New();
+  EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(filter.GetPointer(), "DensityFieldFilter", "ImageToImageFilter"));
+  EXPECT_TRUE(itk::dmr::test::PrintMentions(
+    filter.GetPointer(), { "NumberOfLevels", "AlphaFactor", "UseFixedAlpha", "Alpha", "MSSD", "SSD", "MeanSquaredForce" }));
+  DMR_EXPECT_SET_GET(filter, NumberOfLevels, 2u);
+  DMR_EXPECT_SET_GET(filter, AlphaFactor, 0.25);
+  DMR_EXPECT_SET_GET(filter, UseFixedAlpha, true);
+  DMR_EXPECT_SET_GET(filter, Alpha, 3.5);
+  filter->UseFixedAlphaOff();
+  EXPECT_FALSE(filter->GetUseFixedAlpha());
+  filter->SetNumberOfLevels(0);
+  EXPECT_EQ(filter->GetNumberOfLevels(), 1u);
+  filter->SetNumberOfLevels(9);
+  EXPECT_EQ(filter->GetNumberOfLevels(), 8u);
+  filter->SetAlphaFactor(-1.0);
+  EXPECT_EQ(filter->GetAlphaFactor(), 0.0);
+  auto image = ImageType::New();
+  filter->SetFixedImage(image);
+  filter->SetMovingImage(image);
+  EXPECT_EQ(filter->GetFixedImage(), image.GetPointer());
+  EXPECT_EQ(filter->GetMovingImage(), image.GetPointer());
+  auto field = FieldType::New();
+  filter->SetDisplacementField(field);
+  EXPECT_EQ(filter->GetDisplacementField(), field.GetPointer());
+}
+
+TEST(DensityFieldFilter, BadInputThrows)
+{
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } }, Spacing(1, 1), Origin(0, 0),
+                                                    itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                    Blob(Origin(10, 8)));
+  {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(image);
+    filter->SetMovingImage(image);
+    auto field = FieldType::New();
+    field->SetRegions(FieldType::SizeType{ { 10, 16 } });
+    field->Allocate(true);
+    filter->SetDisplacementField(field);
+    EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+  {
+    auto thin = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 1 } }, Spacing(1, 1), Origin(0, 0),
+                                                     itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                     Blob(Origin(10, 0)));
+    auto filter = FilterType::New();
+    filter->SetFixedImage(thin);
+    filter->SetMovingImage(thin);
+    EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+  {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(image); // no moving image
+    EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+}
+
+void
+CheckIdenticalImages(double angle, double relativeTolerance)
+{
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 40, 32 } }, Spacing(1.0, 1.2),
+                                                    Origin(-5, 3), itk::dmr::test::RotationDirection2D<ImageType>(angle),
+                                                    Blob(Origin(8, 20)));
+  double energy = 0.0; // sum T^2: the scale of the SSD
+  for (size_t p = 0; p < 40 * 32; ++p)
+  {
+    energy += double(image->GetBufferPointer()[p]) * image->GetBufferPointer()[p];
+  }
+  auto filter = FilterType::New();
+  filter->SetFixedImage(image);
+  filter->SetMovingImage(image);
+  filter->Update();
+  EXPECT_LE(filter->GetMSSD(), relativeTolerance * energy);
+  EXPECT_LE(filter->GetSSD(), relativeTolerance * energy);
+  EXPECT_LE(filter->GetMeanSquaredForce(), relativeTolerance * energy);
+  EXPECT_GT(filter->GetAlpha(), 0.0);
+  const auto * density = filter->GetOutput();
+  EXPECT_EQ(density->GetLargestPossibleRegion(), image->GetLargestPossibleRegion());
+  EXPECT_EQ(density->GetDirection(), image->GetDirection());
+  const size_t n = image->GetLargestPossibleRegion().GetNumberOfPixels();
+  for (size_t p = 0; p < n; ++p)
+  {
+    ASSERT_EQ(density->GetBufferPointer()[p], static_cast<float>(filter->GetAlpha())) << "pixel " << p;
+    ASSERT_LE(filter->GetForceField()->GetBufferPointer()[p].GetSquaredNorm(), relativeTolerance * energy) << "pixel " << p;
+  }
+}
+
+TEST(DensityFieldFilter, IdenticalImagesGiveZeroMSSDAndConstantPositiveDensity)
+{
+  // the moving image is sampled through physical space (index -> point -> index), a round trip that is exact only to
+  // rounding: measured MSSD 2e-25 (identity direction) and 3e-25 (rotated) for an image energy of 1e6
+  CheckIdenticalImages(0.0, 1e-20);
+  CheckIdenticalImages(0.4, 1e-20);
+}
+
+// Bug reproducer (disabled until the library is fixed, see the test report): for identical constant images the
+// intensity range is 0, the alpha floor is DBL_MIN, and density = 0 + alpha is cast to float -> 0: the density is
+// zero everywhere although the class promises it is never all zero (DiscreteCVTFilter then throws).
+TEST(DensityFieldFilter, DISABLED_IdenticalConstantImagesGiveAPositiveDensity)
+{
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } }, Spacing(1, 1), Origin(0, 0),
+                                                    itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                    [](const ImageType::PointType &) { return 5.0f; });
+  auto filter = FilterType::New();
+  filter->SetFixedImage(image);
+  filter->SetMovingImage(image);
+  filter->Update();
+  EXPECT_GT(filter->GetOutput()->GetBufferPointer()[0], 0.0f);
+}
+
+/** Sigmoid edge of height 100 and width 2 mm across the physical direction e, at e.p = position. */
+auto
+Edge(double position, double ex, double ey)
+{
+  return [=](const ImageType::PointType & p) {
+    return static_cast<float>(100.0 / (1.0 + std::exp(-((p[0] * ex + p[1] * ey) - position) / 2.0)));
+  };
+}
+
+TEST(DensityFieldFilter, ForcePointsTheWayTheDisplacementMustGo)
+{
+  // Moving S has its edge at x = 30, fixed T at x = 34. W(x) = x + u(x) maps fixed points to moving points and
+  // registration wants S(x + u) = T(x) = S(x - 4), i.e. u = -4 along x. The force f = 2 (T - S(W)) grad S(W) is
+  // minus the gradient of the SSD with respect to u: at x = 32, T < S and grad S > 0, so f_x < 0 (towards u = -4).
+  const ImageType::SizeType size{ { 64, 8 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Edge(34, 1, 0));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Edge(30, 1, 0));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->Update();
+  const auto * force = filter->GetForceField();
+  for (int y = 0; y < 8; ++y)
+  {
+    const auto f = force->GetPixel({ { 32, y } });
+    EXPECT_LT(f[0], -1.0) << "row " << y;
+    EXPECT_NEAR(f[1], 0.0, 1e-3 * std::abs(f[0])) << "row " << y;
+  }
+  const double ssdBefore = filter->GetSSD();
+  ASSERT_GT(ssdBefore, 0.0);
+  // following the force lowers the SSD; going against it raises it
+  FieldType::PixelType step;
+  step[0] = -1.0f;
+  step[1] = 0.0f;
+  filter->SetDisplacementField(ConstantField(fixed, step));
+  filter->Update();
+  EXPECT_LT(filter->GetSSD(), ssdBefore);
+  step[0] = 1.0f;
+  filter->SetDisplacementField(ConstantField(fixed, step));
+  filter->Update();
+  EXPECT_GT(filter->GetSSD(), ssdBefore);
+  // and u = -4 registers the images (the edge is ~0 where the clamped border is sampled)
+  step[0] = -4.0f;
+  filter->SetDisplacementField(ConstantField(fixed, step));
+  filter->Update();
+  EXPECT_LT(filter->GetSSD(), 1e-6 * ssdBefore);
+}
+
+TEST(DensityFieldFilter, PhysicalForceFollowsARotatedImage)
+{
+  // the same edge pair along a physical direction e on rotated images: the physical force is along -e
+  const double              angle = 0.5;
+  const double              ex = std::cos(angle), ey = std::sin(angle);
+  const ImageType::SizeType size{ { 48, 40 } };
+  const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(angle + 0.2);
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(12, ex, ey));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(9, ex, ey));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->Update();
+  const auto * force = filter->GetForceField();
+  size_t       checked = 0;
+  itk::ImageRegionConstIteratorWithIndex<FieldType> it(force, force->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    ImageType::PointType p;
+    force->TransformIndexToPhysicalPoint(it.GetIndex(), p);
+    const double s = p[0] * ex + p[1] * ey;
+    const auto   idx = it.GetIndex();
+    if (s < 9.5 || s > 11.5 || idx[0] < 3 || idx[1] < 3 || idx[0] > 44 || idx[1] > 36)
+    {
+      continue; // between the edges, away from the image border
+    }
+    const auto   f = it.Get();
+    const double along = f[0] * ex + f[1] * ey;
+    const double across = -f[0] * ey + f[1] * ex;
+    EXPECT_LT(along, 0.0) << it.GetIndex();
+    EXPECT_LT(std::abs(across), 0.05 * std::abs(along)) << it.GetIndex();
+    ++checked;
+  }
+  EXPECT_GT(checked, 20u);
+}
+
+TEST(DensityFieldFilter, DisplacementThatUndoesATranslationGivesZeroSSD)
+{
+  // fixed T(p) = B(p), moving S(p) = B(p - t): S(p + t) = T(p), so the field u = t registers them. t is a whole
+  // number of pixels along the rotated image axes, so linear interpolation is exact.
+  const ImageType::SizeType size{ { 48, 40 } };
+  const auto                spacing = Spacing(0.9, 1.2);
+  const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(0.6);
+  const auto                origin = Origin(4, -9);
+  auto                      fixed = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, [&](const ImageType::PointType &) { return 0.0f; });
+  ImageType::PointType      centre;
+  fixed->TransformIndexToPhysicalPoint({ { 22, 20 } }, centre);
+  fixed = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, Blob(centre));
+  itk::Vector<double, 2> indexShift;
+  indexShift[0] = 3 * spacing[0];
+  indexShift[1] = -2 * spacing[1];
+  const itk::Vector<double, 2> t = direction * indexShift;
+  ImageType::PointType         movedCentre = centre + t;
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, Blob(movedCentre));
+
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->Update();
+  const double ssdIdentity = filter->GetSSD();
+  ASSERT_GT(ssdIdentity, 1.0);
+  FieldType::PixelType u;
+  u[0] = static_cast<float>(t[0]);
+  u[1] = static_cast<float>(t[1]);
+  auto field = ConstantField(fixed, u);
+  filter->SetDisplacementField(field);
+  filter->Update();
+  EXPECT_LT(filter->GetSSD(), 1e-6 * ssdIdentity);
+  std::vector<float> warped;
+  filter->WarpMovingImage(field, warped);
+  const auto grid = itk::dmr::Grid<2>::FromImage(fixed.GetPointer());
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto idx = grid.Index(p);
+    if (idx[0] < 4 || idx[1] < 4 || idx[0] > 43 || idx[1] > 35)
+    {
+      continue;
+    }
+    ASSERT_NEAR(warped[p], fixed->GetBufferPointer()[p], 1e-3) << "pixel " << p;
+  }
+  // the wrong sign doubles the shift instead
+  filter->SetDisplacementField(ConstantField(fixed, -u));
+  filter->Update();
+  EXPECT_GT(filter->GetSSD(), ssdIdentity);
+}
+
+/** Force of the blob pair on a grid with the given spacing; the pixel data do not depend on the spacing. */
+std::vector<float>
+ForceWithSpacing(double sx, double sy, unsigned int levels)
+{
+  const ImageType::SizeType size{ { 40, 32 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(18, 15)));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(21, 13)));
+  fixed->SetSpacing(Spacing(sx, sy));
+  moving->SetSpacing(Spacing(sx, sy));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->SetNumberOfLevels(levels);
+  filter->Update();
+  const auto * f = filter->GetForceField()->GetBufferPointer();
+  std::vector<float> out;
+  for (size_t p = 0; p < size[0] * size[1]; ++p)
+  {
+    out.push_back(f[p][0]);
+    out.push_back(f[p][1]);
+  }
+  EXPECT_EQ(filter->GetGridForce(), out); // identity direction: grid frame = physical frame
+  return out;
+}
+
+TEST(DensityFieldFilter, ForceIsPerMillimetre)
+{
+  for (unsigned int levels : { 1u, 3u })
+  {
+    const auto unit = ForceWithSpacing(1.0, 1.0, levels);
+    const auto twice = ForceWithSpacing(2.0, 2.0, levels);
+    const auto anisotropic = ForceWithSpacing(1.0, 2.0, levels);
+    float      maxForce = 0.0f;
+    for (float v : unit)
+    {
+      maxForce = std::max(maxForce, std::abs(v));
+    }
+    ASSERT_GT(maxForce, 1.0f);
+    for (size_t i = 0; i < unit.size(); i += 2)
+    {
+      // doubling the spacing halves the gradient (per mm), and the residual is unchanged
+      EXPECT_NEAR(twice[i], 0.5f * unit[i], 1e-5f * maxForce) << "levels " << levels << " component " << i;
+      EXPECT_NEAR(twice[i + 1], 0.5f * unit[i + 1], 1e-5f * maxForce) << "levels " << levels << " component " << i;
+      // per axis: only the y component halves when only the y spacing doubles
+      EXPECT_NEAR(anisotropic[i], unit[i], 1e-5f * maxForce) << "levels " << levels << " component " << i;
+      EXPECT_NEAR(anisotropic[i + 1], 0.5f * unit[i + 1], 1e-5f * maxForce) << "levels " << levels << " component " << i;
+    }
+  }
+}
+
+TEST(DensityFieldFilter, DensityIsSquaredForcePlusAlpha)
+{
+  const ImageType::SizeType size{ { 40, 32 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->Update();
+  const size_t n = size[0] * size[1];
+  const auto * density = filter->GetOutput()->GetBufferPointer();
+  const auto * force = filter->GetForceField()->GetBufferPointer();
+  double       meanF2 = 0.0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    const double f2 = force[p].GetSquaredNorm();
+    meanF2 += f2 / n;
+    ASSERT_NEAR(density[p], f2 + filter->GetAlpha(), 1e-5 * (f2 + filter->GetAlpha())) << "pixel " << p;
+  }
+  EXPECT_NEAR(filter->GetMeanSquaredForce(), meanF2, 1e-5 * meanF2);
+  EXPECT_NEAR(filter->GetAlpha(), 0.1 * filter->GetMeanSquaredForce(), 1e-12 * filter->GetMeanSquaredForce());
+  // the multi-resolution sum includes the full-resolution term
+  EXPECT_GT(filter->GetMSSD(), filter->GetSSD());
+  filter->SetNumberOfLevels(1);
+  filter->Update();
+  EXPECT_DOUBLE_EQ(filter->GetMSSD(), filter->GetSSD());
+  // a fixed alpha is used as given
+  filter->SetUseFixedAlpha(true);
+  filter->SetAlpha(7.0);
+  filter->Update();
+  EXPECT_EQ(filter->GetAlpha(), 7.0);
+  for (size_t p = 0; p < n; ++p)
+  {
+    const double f2 = filter->GetForceField()->GetBufferPointer()[p].GetSquaredNorm();
+    ASSERT_NEAR(filter->GetOutput()->GetBufferPointer()[p], f2 + 7.0, 1e-5 * (f2 + 7.0));
+  }
+}
+
+// Bug reproducer (disabled until the library is fixed, see the test report): BuildPyramids() reuses its cached
+// pyramids when m_PyramidTime >= max(fixed MTime, moving MTime) and the pixel count matches, so a different input
+// image that is older than the cached ones (here: created first) is ignored; SSD is 184760 instead of 0.
+TEST(DensityFieldFilter, DISABLED_SwappingInAnotherImageOfTheSameSizeIsSeen)
+{
+  // the pyramids are cached between updates; a different moving image must not reuse the old ones
+  const ImageType::SizeType size{ { 32, 24 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  // created first: the oldest modification time of the three
+  auto same = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(15, 12)));
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(15, 12)));
+  auto other = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(18, 10)));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(other);
+  filter->Update();
+  EXPECT_GT(filter->GetSSD(), 0.0);
+  filter->SetMovingImage(same);
+  filter->Update();
+  EXPECT_EQ(filter->GetSSD(), 0.0);
+}
+} // namespace
