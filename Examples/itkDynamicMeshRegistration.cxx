@@ -74,6 +74,7 @@ struct Options
   long         saveMeshEvery{ 0 };
   long         regularSize{ 0 };
   double       lambda{ 1.0 }, mu{ 1.0 };
+  double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
 };
 
 const char * const Usage =
@@ -87,6 +88,8 @@ const char * const Usage =
   "  --mesh MODE            dynamic (default) | regular | a mesh file (e.g. .vtk) used as a static mesh\n"
   "  --regular-size n       nodes per axis of the regular mesh (default round(N^(1/dim)))\n"
   "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
+  "  --energy-ratio R       beta is set at iteration 1 so that beta R / D = R (default 0.02, paper 5.1)\n"
+  "  --alpha-factor A       density base value alpha = A x mean |f|^2 (default 0.1, paper 5.1)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
@@ -170,6 +173,10 @@ ParseArguments(int argc, char * argv[])
       opt.lambda = ParseReal(a, v);
     else if (a == "--mu")
       opt.mu = ParseReal(a, v);
+    else if (a == "--energy-ratio")
+      opt.energyRatio = ParseReal(a, v);
+    else if (a == "--alpha-factor")
+      opt.alphaFactor = ParseReal(a, v);
     else
       throw UsageError("unknown option " + a + " (see --help)");
   }
@@ -187,6 +194,8 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--save-mesh-every must be 0 or positive");
   if (opt.lambda < 0 || opt.mu <= 0)
     throw UsageError("--lambda must be >= 0 and --mu > 0");
+  if (opt.energyRatio <= 0 || opt.alphaFactor <= 0)
+    throw UsageError("--energy-ratio and --alpha-factor must be positive");
   if (opt.backend != "auto" && opt.backend != "cpu" && opt.backend != "cuda")
     throw UsageError("--backend must be auto, cpu or cuda");
   if (opt.regularSize != 0 && opt.regularSize < 2)
@@ -421,6 +430,8 @@ Run(const Options & opt)
   method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));
   method->SetLambda(opt.lambda);
   method->SetMu(opt.mu);
+  method->SetEnergyRatio(opt.energyRatio);
+  method->SetAlphaFactor(opt.alphaFactor);
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
   if (opt.threads > 0)
   {
@@ -576,6 +587,8 @@ Run(const Options & opt)
        << "  \"threads\": " << method->GetNumberOfWorkUnits() << ",\n"
        << "  \"lambda\": " << opt.lambda << ",\n"
        << "  \"mu\": " << opt.mu << ",\n"
+       << "  \"energy_ratio\": " << opt.energyRatio << ",\n"
+       << "  \"alpha_factor\": " << opt.alphaFactor << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"
        << "  \"timing_s\": {\"total\": " << t.total << ", \"initial_tessellation\": " << t.initialTessellation
        << ", \"tessellation_optimization\": " << t.tessellationOptimization

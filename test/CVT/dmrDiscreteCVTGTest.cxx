@@ -368,11 +368,11 @@ TEST(DiscreteCVT, LocalRemovalTestImpliesTheCellStaysConnected)
   EXPECT_GT(accepted, 0u);
   EXPECT_GT(refused, 0u);
 }
-// Bug reproducer (disabled until the library is fixed, see the test report): Optimize() resets m_Touched,
+// Regression test (a fixed bug): Optimize() resets m_Touched,
 // m_DeltaMass, ... to the new number of cells but keeps m_TouchedList from the previous optimisation, so
 // JointEnergyChange() indexes those arrays with labels of the old, larger labelling (out of bounds; caught by
 // _GLIBCXX_ASSERTIONS, which this executable is built with).
-TEST(DiscreteCVT, DISABLED_ReinitialisingWithFewerCellsStaysInBounds)
+TEST(DiscreteCVT, ReinitialisingWithFewerCellsStaysInBounds)
 {
   const itk::dmr::Grid<2> grid(size2D, spacing2D);
   const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);

@@ -293,11 +293,11 @@ TEST(DualMeshFilter, BorderNodesLieExactlyOnTheBoxWithUnitSpacing)
   EXPECT_TRUE(BorderNodesAreExactAndElementsAreNotSlivers(phantom.GetGrid(), phantom.GetMesh()));
 }
 
-// Bug reproducer (disabled until the library is fixed, see the test report): a boundary cell's node is the mean of
+// Regression test (a fixed bug): a boundary cell's node is the mean of
 // its border pixels' positions (itkDualMeshFilter.hxx, sideSum / bestCount), which rounds off the border line for
 // non-integer spacing (50.399999999999999 instead of 50.400000000000006). CGAL then sees the border nodes as not
 // collinear and adds sliver triangles of area ~2e-13 spanning a whole side of the box.
-TEST(DualMeshFilter, DISABLED_BorderNodesLieExactlyOnTheBox)
+TEST(DualMeshFilter, BorderNodesLieExactlyOnTheBox)
 {
   const auto phantom = MakeDualMeshPhantom();
   EXPECT_TRUE(BorderNodesAreExactAndElementsAreNotSlivers(phantom.GetGrid(), phantom.GetMesh()));

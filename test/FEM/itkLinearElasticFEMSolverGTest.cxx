@@ -241,10 +241,9 @@ TEST(LinearElasticFEMSolver, PatchTestsOnADualMesh2D)
   CheckPatchTests<2>(phantom.GetMesh());
 }
 
-// Bug reproducer (disabled until DualMeshFilter is fixed, see the test report and
-// DualMeshFilter.DISABLED_BorderNodesLieExactlyOnTheBox): with spacing 0.8 x 1.3 the dual mesh has sliver
+// Regression test (see DualMeshFilter.BorderNodesLieExactlyOnTheBox): with spacing 0.8 x 1.3 the dual mesh has sliver
 // triangles of area ~2e-13 along the border, K has entries ~1e13 and the constant-strain energy is off by 28%.
-TEST(LinearElasticFEMSolver, DISABLED_PatchTestsOnAnAnisotropicDualMesh2D)
+TEST(LinearElasticFEMSolver, PatchTestsOnAnAnisotropicDualMesh2D)
 {
   const auto phantom = itk::dmr::test::MakeDualMeshPhantom();
   CheckPatchTests<2>(phantom.GetMesh());

@@ -556,6 +556,7 @@ public:
     m_DeltaMoment.assign(nCells * D, 0.0);
     m_DeltaSecond.assign(nCells, 0.0);
     m_Touched.assign(nCells, 0);
+    m_TouchedList.clear(); // labels of an earlier labelling may exceed the new cell count
     // smallest energy change worth a swap, relative to a pixel's mass times the squared pixel size (rounding guard)
     double h2 = m_Grid.spacing[0] * m_Grid.spacing[0];
     for (unsigned int k = 1; k < D; ++k)

@@ -59,7 +59,7 @@ public:
   using DensityImageType = TDensityImage;
   using LabelImageType = TLabelImage;
   using LabelType = typename LabelImageType::PixelType;
-  using SitesType = PointSet<double, ImageDimension>;
+  using SitesType = PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
   using BackendEnum = DynamicMeshRegistrationEnums::Backend;
   using CoreType = dmr::DiscreteCVT<ImageDimension>;
   using DataObjectPointerArraySizeType = typename Superclass::DataObjectPointerArraySizeType;

@@ -88,7 +88,7 @@ struct CircleToEpsilon
 {
   static constexpr unsigned int Width = 512, Height = 512;
   static constexpr double       CentreX = 255.5, CentreY = 255.5, Radius = 120.0;
-  static constexpr double       OuterRadius = 130.0, BayOffsetX = 25.0, BayOffsetY = 55.0, BayA = 70.0, BayB = 28.0;
+  static constexpr double       OuterRadius = 150.0, BayOffsetX = 55.0, BayOffsetY = 62.0, BayA = 80.0, BayB = 40.0;
   static constexpr double       Entrance = 5.0;
   static bool
   Source(double x, double y)

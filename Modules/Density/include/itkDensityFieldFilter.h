@@ -43,7 +43,9 @@ namespace itk
  * (paper 5.1: AlphaFactor = 0.1), unless alpha is set explicitly. When the images already match (mean |f|^2 = 0)
  * alpha falls back to a floor relative to the moving image's intensity range so the density is never all zero.
  * Output 1 is the force field f (physical frame, per pixel). GetMSSD() is paper Eq. 3 evaluated on the finest
- * grid (sum over levels and pixels of the squared residual), GetSSD() the plain full-resolution term.
+ * grid: each level's squared residuals are summed with weight (pixels of the level) / (fine pixels), i.e. as the
+ * paper's sum over the level's own pixels. GetSSD() is the plain full-resolution term. The force is Eq. 5 as written
+ * (levels summed without weights).
  *
  * \par References
  * Y. Cai, X. Guo, Z. Zhong, W. Mao, "Dynamic meshing for deformable image registration", Computer-Aided Design 58
@@ -166,6 +168,8 @@ private:
   std::vector<Level> m_Levels;
   ModifiedTimeType   m_PyramidTime{ 0 };
   unsigned int       m_PyramidLevels{ 0 };
+  const void *       m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
+  const void *       m_PyramidMoving{ nullptr };
   double             m_IntensityRange{ 0.0 };
   std::vector<float> m_GridForce;
 };

@@ -197,7 +197,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
   const MovingImageType * moving = this->GetMovingImage();
   const ModifiedTimeType  inputTime = std::max(fixed->GetMTime(), moving->GetMTime());
   if (!m_Levels.empty() && m_PyramidTime >= inputTime && m_PyramidLevels == m_NumberOfLevels &&
-      m_Levels[0].fixedGrid.numberOfPixels == fixed->GetLargestPossibleRegion().GetNumberOfPixels())
+      m_PyramidFixed == fixed && m_PyramidMoving == moving)
   {
     return; // the pyramids depend only on the images, not on the displacement field: keep them across iterations
   }
@@ -288,6 +288,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
   }
   m_IntensityRange = hi - lo;
   m_PyramidTime = inputTime;
+  m_PyramidFixed = fixed;
+  m_PyramidMoving = moving;
   m_PyramidLevels = m_NumberOfLevels;
 }
 
@@ -320,6 +322,13 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   float *      gridForce = m_GridForce.data();
   const auto * levels = m_Levels.data();
   const unsigned int nLevels = m_NumberOfLevels;
+  // Eq. 3 sums level i over the pixels of level i. Evaluated at the fine pixels, each fine pixel stands for
+  // (pixels of level i) / (fine pixels) of them.
+  std::vector<double> levelWeight(nLevels);
+  for (unsigned int l = 0; l < nLevels; ++l)
+  {
+    levelWeight[l] = static_cast<double>(m_Levels[l].fixedGrid.numberOfPixels) / static_cast<double>(n);
+  }
 
   // Per-chunk partial sums, combined in chunk order so the result does not depend on thread timing.
   struct Partial
@@ -375,7 +384,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
             dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0, &s);
             dmr::InterpolateAdd<D, D>(L.movingGrid, L.movingGradient.data(), cm, 1.0, g);
             const double residual = t - s;
-            acc.mssd += residual * residual;
+            acc.mssd += levelWeight[l] * residual * residual;
             if (l == 0)
             {
               acc.ssd += residual * residual;
@@ -426,7 +435,8 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
       minSpacing = std::min(minSpacing, grid.spacing[k]);
     }
     const double forceScale = 2.0 * m_IntensityRange * m_IntensityRange / minSpacing;
-    const double floor = std::max(1e-12 * forceScale * forceScale, std::numeric_limits<double>::min());
+    // (constant images: any positive value gives the same uniform density; keep it representable as float)
+    const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
     m_Alpha = std::max(m_AlphaFactor * m_MeanSquaredForce, floor);
   }
   const double alpha = m_Alpha;

@@ -64,7 +64,7 @@ public:
   static constexpr unsigned int ImageDimension = TLabelImage::ImageDimension;
   using LabelImageType = TLabelImage;
   using MeshType = TOutputMesh;
-  using SitesType = PointSet<double, ImageDimension>;
+  using SitesType = PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
   using SimplexMeshType = dmr::SimplexMesh<ImageDimension>;
 
   using Superclass::SetInput;

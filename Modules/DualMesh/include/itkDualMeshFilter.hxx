@@ -140,6 +140,11 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData()
       {
         nodes[c * D + k] = sideSum[(c * nSides + bestSide) * D + k] / bestCount;
       }
+      // exactly on the side (the mean of equal coordinates can round off the border line, which would make CGAL
+      // see border nodes as not collinear and create sliver triangles along the border)
+      const unsigned int axis = bestSide / 2;
+      nodes[c * D + axis] =
+        bestSide % 2 == 0 ? 0.0 : static_cast<double>(grid.size[axis] - 1) * grid.spacing[axis];
     }
     else if (sites && sites->GetNumberOfPoints() == nCells)
     {

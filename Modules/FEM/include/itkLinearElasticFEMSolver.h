@@ -61,7 +61,8 @@ public:
   itkSetClampMacro(Mu, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());
   itkGetConstMacro(Mu, double);
 
-  /** Assembles and factorises K for a mesh (kept by pointer: it must outlive the solver's use). */
+  /** Assembles and factorises K for a mesh (kept by pointer: it must outlive the solver's use). Changing Lambda or
+   * Mu afterwards requires another SetMesh(); Solve() refuses a stale factorisation. */
   void
   SetMesh(const MeshType & mesh);
 
@@ -97,6 +98,8 @@ private:
   double                 m_Mu{ 1.0 };
   SizeValueType          m_NumberOfFreeNodes{ 0 };
   const MeshType *       m_Mesh{ nullptr };
+  double                 m_AssembledLambda{ 0.0 };
+  double                 m_AssembledMu{ 0.0 };
   SparseMatrixType       m_K;
   std::vector<int64_t>   m_FreeIndex; // dof -> index in the reduced system, -1 when fixed
   std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;

@@ -165,6 +165,8 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
     }
   }
   m_Mesh = &mesh;
+  m_AssembledLambda = m_Lambda;
+  m_AssembledMu = m_Mu;
   this->Modified();
 }
 
@@ -175,6 +177,10 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
   if (m_Mesh == nullptr)
   {
     itkExceptionMacro("Solve() needs SetMesh() first");
+  }
+  if (m_AssembledLambda != m_Lambda || m_AssembledMu != m_Mu)
+  {
+    itkExceptionMacro("Lambda or Mu changed after SetMesh(): call SetMesh() again to re-assemble K");
   }
   const size_t    nDof = m_FreeIndex.size();
   Eigen::VectorXd rhs = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(m_NumberOfFreeNodes * D));

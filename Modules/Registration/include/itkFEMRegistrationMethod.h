@@ -139,6 +139,10 @@ public:
   itkGetConstMacro(CVTEpsilon, double);
   itkSetClampMacro(MaximumNumberOfSweeps, SizeValueType, 1, NumericTraits<SizeValueType>::max());
   itkGetConstMacro(MaximumNumberOfSweeps, SizeValueType);
+  /** Dynamic mode: re-run the contraction (paper 4.4) every this many iterations instead of warm-starting the swaps
+   * from the previous labels (paper 4.7); 0 = always warm-start after the first iteration. */
+  itkSetMacro(ReinitializationInterval, unsigned int);
+  itkGetConstMacro(ReinitializationInterval, unsigned int);
   itkSetEnumMacro(MeshMode, MeshModeEnum);
   itkGetEnumMacro(MeshMode, MeshModeEnum);
   /** Nodes per axis of the Regular mesh; 0 = round(NumberOfNodes^(1/D)). */
@@ -222,6 +226,7 @@ private:
   double        m_AlphaFactor{ 0.1 };
   double        m_CVTEpsilon{ 0.0 };
   SizeValueType m_MaximumNumberOfSweeps{ 1000 };
+  unsigned int  m_ReinitializationInterval{ 0 };
   MeshModeEnum  m_MeshMode{ MeshModeEnum::Dynamic };
   unsigned int  m_RegularGridSize{ 0 };
   BackendEnum   m_Backend{ BackendEnum::Auto };

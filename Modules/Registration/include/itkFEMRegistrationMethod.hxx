@@ -296,10 +296,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     if (m_MeshMode == MeshModeEnum::Dynamic)
     {
       m_CVTFilter->SetInput(m_DensityFilter->GetOutput());
-      if (m_Labels)
-      {
-        m_CVTFilter->SetInitialLabels(m_Labels); // warm start (paper 4.7)
-      }
+      const bool reinitialize =
+        m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
+      // warm start (paper 4.7) unless a fresh contraction is due
+      m_CVTFilter->SetInitialLabels(m_Labels && !reinitialize ? m_Labels.GetPointer() : nullptr);
       m_CVTFilter->Update();
       m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
       m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
@@ -421,6 +421,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
   os << indent << "CVTEpsilon: " << m_CVTEpsilon << std::endl;
   os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
+  os << indent << "ReinitializationInterval: " << m_ReinitializationInterval << std::endl;
   os << indent << "MeshMode: " << m_MeshMode << std::endl;
   os << indent << "RegularGridSize: " << m_RegularGridSize << std::endl;
   os << indent << "Backend: " << m_Backend << std::endl;

@@ -1,0 +1,54 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrImageMetrics_h
+#define dmrImageMetrics_h
+
+#include "itkImage.h"
+#include "itkImageRegionConstIterator.h"
+#include "itkMacro.h"
+
+namespace itk
+{
+namespace dmr
+{
+/** Dice overlap of the regions {a > threshold} and {b > threshold} of two images of the same size. */
+template <typename TImageA, typename TImageB>
+double
+DiceCoefficient(const TImageA * a, const TImageB * b, double threshold = 0.5)
+{
+  if (a->GetLargestPossibleRegion().GetSize() != b->GetLargestPossibleRegion().GetSize())
+  {
+    itkGenericExceptionMacro("DiceCoefficient: the images differ in size");
+  }
+  ImageRegionConstIterator<TImageA> ia(a, a->GetLargestPossibleRegion());
+  ImageRegionConstIterator<TImageB> ib(b, b->GetLargestPossibleRegion());
+  double                            na = 0, nb = 0, both = 0;
+  for (; !ia.IsAtEnd(); ++ia, ++ib)
+  {
+    const bool ina = static_cast<double>(ia.Get()) > threshold;
+    const bool inb = static_cast<double>(ib.Get()) > threshold;
+    na += ina;
+    nb += inb;
+    both += ina && inb;
+  }
+  return na + nb > 0 ? 2.0 * both / (na + nb) : 1.0;
+}
+} // namespace dmr
+} // namespace itk
+
+#endif
