@@ -1,0 +1,296 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "itkFEMRegistrationMethod.h"
+#include "itkCommand.h"
+#include "itkResampleImageFilter.h"
+#include "dmrFieldImage.h"
+#include "dmrObjectChecks.h"
+#include "gtest/gtest.h"
+#include <cmath>
+
+namespace
+{
+using ImageType = itk::Image<float, 2>;
+using MethodType = itk::FEMRegistrationMethod<ImageType, ImageType>;
+using MeshMode = itk::DynamicMeshRegistrationEnums::MeshMode;
+
+/** Smooth blob (Gaussian-edged ellipse) on a w x h grid; geometry set by the caller. */
+ImageType::Pointer
+Blob(unsigned int w, unsigned int h, double cx, double cy, double rx, double ry)
+{
+  auto image = ImageType::New();
+  image->SetRegions(ImageType::SizeType{ { w, h } });
+  image->Allocate();
+  for (unsigned int y = 0; y < h; ++y)
+  {
+    for (unsigned int x = 0; x < w; ++x)
+    {
+      const double r = std::sqrt(std::pow((x - cx) / rx, 2) + std::pow((y - cy) / ry, 2));
+      image->SetPixel({ { x, y } }, static_cast<float>(1.0 / (1.0 + std::exp((r - 1.0) * 8.0))));
+    }
+  }
+  return image;
+}
+
+MethodType::Pointer
+SmallRegistration(MeshMode mode, unsigned int iterations = 40)
+{
+  auto method = MethodType::New();
+  method->SetFixedImage(Blob(64, 56, 30, 28, 16, 12));
+  method->SetMovingImage(Blob(64, 56, 34, 27, 12, 12));
+  method->SetNumberOfNodes(30);
+  method->SetNumberOfIterations(iterations);
+  method->SetMeshMode(mode);
+  return method;
+}
+} // namespace
+
+TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
+{
+  auto method = MethodType::New();
+  EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(method.GetPointer(), "FEMRegistrationMethod", "ProcessObject"));
+  EXPECT_TRUE(itk::dmr::test::PrintMentions(method.GetPointer(),
+                                            { "NumberOfIterations", "NumberOfNodes", "NumberOfLevels", "Lambda", "Mu",
+                                              "EnergyRatio", "AlphaFactor", "CVTEpsilon", "MaximumNumberOfSweeps",
+                                              "ReinitializationInterval", "MeshMode", "RegularGridSize", "Backend",
+                                              "Beta", "FinalSSD" }));
+  DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);
+  DMR_EXPECT_SET_GET(method, NumberOfNodes, 55u);
+  DMR_EXPECT_SET_GET(method, Lambda, 0.5);
+  DMR_EXPECT_SET_GET(method, Mu, 2.0);
+  DMR_EXPECT_SET_GET(method, EnergyRatio, 0.05);
+  DMR_EXPECT_SET_GET(method, AlphaFactor, 0.2);
+  DMR_EXPECT_SET_GET(method, RegularGridSize, 6u);
+  DMR_EXPECT_SET_GET(method, ReinitializationInterval, 3u);
+  method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least
+  EXPECT_EQ(method->GetNumberOfNodes(), 4u);
+}
+
+TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
+{
+  auto method = SmallRegistration(MeshMode::Dynamic);
+  method->Update();
+  const auto & history = method->GetHistory();
+  ASSERT_EQ(history.size(), 40u);
+  EXPECT_LT(method->GetFinalSSD(), 0.25 * history.front().ssd);
+  EXPECT_GT(method->GetBeta(), 0.0);
+  std::pair<double, double> range;
+  itk::dmr::JacobianDeterminantImage(method->GetDisplacementField(), range, nullptr);
+  EXPECT_GT(range.first, 0.0);
+  for (const auto & r : history)
+  {
+    EXPECT_EQ(r.nodes, method->GetCurrentSimplexMesh().NumberOfNodes() > 0 ? r.nodes : 0u);
+    EXPECT_GE(r.nodes, 4u);
+  }
+}
+
+TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)
+{
+  auto method = SmallRegistration(MeshMode::Dynamic, 30);
+  method->Update();
+  const auto & h = method->GetHistory();
+  // not necessarily monotone step by step (the mesh changes), but clearly decreasing over windows of 10 iterations
+  for (size_t i = 10; i < h.size(); i += 10)
+  {
+    EXPECT_LT(h[i].mssd, h[i - 10].mssd) << "iteration " << i;
+  }
+  EXPECT_LT(method->GetFinalMSSD(), h.back().mssd);
+}
+
+TEST(FEMRegistrationMethod, RegularAndStaticMeshesLowerSSD)
+{
+  auto regular = SmallRegistration(MeshMode::Regular);
+  regular->SetRegularGridSize(6);
+  regular->Update();
+  EXPECT_EQ(regular->GetCurrentSimplexMesh().NumberOfNodes(), 36u);
+  EXPECT_LT(regular->GetFinalSSD(), 0.5 * regular->GetHistory().front().ssd);
+
+  // the regular mesh, handed back as a user-given static mesh, gives the same registration
+  auto staticMethod = SmallRegistration(MeshMode::Static);
+  using MeshType = MethodType::MeshType;
+  MeshType::ConstPointer mesh = regular->GetCurrentMesh();
+  staticMethod->SetStaticMesh(mesh);
+  staticMethod->Update();
+  EXPECT_NEAR(staticMethod->GetFinalSSD(), regular->GetFinalSSD(), 1e-3 * regular->GetFinalSSD());
+}
+
+TEST(FEMRegistrationMethod, TransformOutputWarpsLikeTheField)
+{
+  auto method = SmallRegistration(MeshMode::Dynamic, 20);
+  method->Update();
+  auto resample = itk::ResampleImageFilter<ImageType, ImageType, double>::New();
+  resample->SetInput(method->GetMovingImage());
+  resample->SetTransform(method->GetTransform());
+  resample->SetOutputParametersFromImage(method->GetFixedImage());
+  resample->Update();
+  double ssd = 0.0;
+  const auto * w = resample->GetOutput()->GetBufferPointer();
+  const auto * f = method->GetFixedImage()->GetBufferPointer();
+  for (size_t p = 0; p < 64 * 56; ++p)
+  {
+    ssd += (w[p] - f[p]) * (w[p] - f[p]);
+  }
+  EXPECT_NEAR(ssd, method->GetFinalSSD(), 0.02 * method->GetFinalSSD() + 1e-3);
+}
+
+TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
+{
+  // the same pixel data with spacing 0.5 x 2, a rotated direction and an origin: the registration in pixel terms is
+  // the same, and the field is the reference field scaled by the spacing and rotated by the direction
+  auto reference = SmallRegistration(MeshMode::Regular, 15);
+  reference->SetRegularGridSize(6);
+  reference->Update();
+
+  auto fixed = Blob(64, 56, 30, 28, 16, 12);
+  auto moving = Blob(64, 56, 34, 27, 12, 12);
+  ImageType::SpacingType spacing;
+  spacing[0] = 0.5;
+  spacing[1] = 2.0;
+  ImageType::DirectionType direction;
+  const double             a = 0.3;
+  direction[0][0] = std::cos(a);
+  direction[0][1] = -std::sin(a);
+  direction[1][0] = std::sin(a);
+  direction[1][1] = std::cos(a);
+  ImageType::PointType origin;
+  origin[0] = 12.5;
+  origin[1] = -40.0;
+  for (auto * image : { fixed.GetPointer(), moving.GetPointer() })
+  {
+    image->SetSpacing(spacing);
+    image->SetDirection(direction);
+    image->SetOrigin(origin);
+  }
+  auto method = MethodType::New();
+  method->SetFixedImage(fixed);
+  method->SetMovingImage(moving);
+  method->SetNumberOfIterations(15);
+  method->SetMeshMode(MeshMode::Regular);
+  method->SetRegularGridSize(6);
+  method->Update();
+  // intensities are identical per pixel, so the SSD (x pixel volume 1) matches
+  EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 0.05 * reference->GetFinalSSD());
+  EXPECT_LT(method->GetFinalSSD(), 0.6 * method->GetHistory().front().ssd);
+  // the field points the same way in pixel terms
+  const auto * u = method->GetDisplacementField()->GetBufferPointer();
+  const auto * r = reference->GetDisplacementField()->GetBufferPointer();
+  const size_t p = 28 * 64 + 42; // right edge of the moving blob
+  itk::Vector<double, 2> phys;
+  phys[0] = u[p][0];
+  phys[1] = u[p][1];
+  const auto grid = direction.GetInverse() * phys; // back to the image axes, mm
+  EXPECT_GT(std::abs(r[p][0]), 0.2);
+  EXPECT_NEAR(grid[0] / spacing[0], r[p][0], 0.35 * std::abs(r[p][0]) + 0.05);
+}
+
+TEST(FEMRegistrationMethod, EventsAndAbort)
+{
+  auto         method = SmallRegistration(MeshMode::Dynamic, 10);
+  unsigned int iterations = 0;
+  float        lastProgress = -1.0f;
+  bool         monotone = true;
+  auto         onIteration = itk::SimpleMemberCommand<void>::New();
+  auto         iterationCommand = itk::CStyleCommand::New();
+  struct Ctx
+  {
+    unsigned int * count;
+    MethodType *   method;
+  } ctx{ &iterations, method.GetPointer() };
+  iterationCommand->SetClientData(&ctx);
+  iterationCommand->SetCallback([](itk::Object *, const itk::EventObject &, void * d) {
+    auto * c = static_cast<Ctx *>(d);
+    ++*c->count;
+    EXPECT_NE(c->method->GetCurrentMesh(), nullptr);
+    if (c->method->GetCurrentIteration() == 4)
+    {
+      c->method->AbortGenerateDataOn();
+    }
+  });
+  method->AddObserver(itk::IterationEvent(), iterationCommand);
+  auto progressCommand = itk::CStyleCommand::New();
+  struct PCtx
+  {
+    float *      last;
+    bool *       monotone;
+    MethodType * method;
+  } pctx{ &lastProgress, &monotone, method.GetPointer() };
+  progressCommand->SetClientData(&pctx);
+  progressCommand->SetCallback([](itk::Object *, const itk::EventObject &, void * d) {
+    auto *      c = static_cast<PCtx *>(d);
+    const float p = c->method->GetProgress();
+    if (p < *c->last)
+    {
+      *c->monotone = false;
+    }
+    *c->last = p;
+  });
+  method->AddObserver(itk::ProgressEvent(), progressCommand);
+  try
+  {
+    method->Update();
+  }
+  catch (const itk::ProcessAborted &)
+  {
+  }
+  EXPECT_EQ(iterations, 4u);
+  EXPECT_EQ(method->GetHistory().size(), 4u);
+  EXPECT_TRUE(monotone);
+}
+
+TEST(FEMRegistrationMethod, BadInputThrows)
+{
+  auto flat = ImageType::New();
+  flat->SetRegions(ImageType::SizeType{ { 32, 32 } });
+  flat->Allocate();
+  flat->FillBuffer(3.0f);
+  auto method = MethodType::New();
+  method->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
+  method->SetMovingImage(flat);
+  method->SetNumberOfIterations(2);
+  EXPECT_THROW(method->Update(), itk::ExceptionObject); // constant image: no force
+
+  auto tooMany = MethodType::New();
+  tooMany->SetFixedImage(Blob(8, 8, 4, 4, 2, 2));
+  tooMany->SetMovingImage(Blob(8, 8, 4, 4, 3, 3));
+  tooMany->SetNumberOfNodes(65);
+  EXPECT_THROW(tooMany->Update(), itk::ExceptionObject);
+
+  auto noMesh = SmallRegistration(MeshMode::Static);
+  EXPECT_THROW(noMesh->Update(), itk::ExceptionObject);
+
+  auto missingMoving = MethodType::New();
+  missingMoving->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
+  EXPECT_THROW(missingMoving->Update(), itk::ExceptionObject);
+}
+
+TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)
+{
+  auto method = MethodType::New();
+  method->SetFixedImage(Blob(40, 40, 20, 20, 9, 9));
+  method->SetMovingImage(Blob(40, 40, 20, 20, 9, 9));
+  method->SetNumberOfIterations(5);
+  method->Update();
+  EXPECT_LE(method->GetHistory().size(), 1u);
+  const auto * u = method->GetDisplacementField()->GetBufferPointer();
+  double       maxU = 0.0;
+  for (size_t p = 0; p < 40 * 40; ++p)
+  {
+    maxU = std::max({ maxU, std::abs(double(u[p][0])), std::abs(double(u[p][1])) });
+  }
+  EXPECT_LT(maxU, 1e-3);
+}
