@@ -83,10 +83,11 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
 
 TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
 {
-  auto method = SmallRegistration(MeshMode::Dynamic);
+  // beta R / D = 0.02 at iteration 1 makes each iteration lower the SSD by a few percent: 100 iterations
+  auto method = SmallRegistration(MeshMode::Dynamic, 100);
   method->Update();
   const auto & history = method->GetHistory();
-  ASSERT_EQ(history.size(), 40u);
+  ASSERT_EQ(history.size(), 100u);
   EXPECT_LT(method->GetFinalSSD(), 0.25 * history.front().ssd);
   EXPECT_GT(method->GetBeta(), 0.0);
   std::pair<double, double> range;
@@ -114,14 +115,14 @@ TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)
 
 TEST(FEMRegistrationMethod, RegularAndStaticMeshesLowerSSD)
 {
-  auto regular = SmallRegistration(MeshMode::Regular);
+  auto regular = SmallRegistration(MeshMode::Regular, 60);
   regular->SetRegularGridSize(6);
   regular->Update();
   EXPECT_EQ(regular->GetCurrentSimplexMesh().NumberOfNodes(), 36u);
   EXPECT_LT(regular->GetFinalSSD(), 0.5 * regular->GetHistory().front().ssd);
 
   // the regular mesh, handed back as a user-given static mesh, gives the same registration
-  auto staticMethod = SmallRegistration(MeshMode::Static);
+  auto staticMethod = SmallRegistration(MeshMode::Static, 60);
   using MeshType = MethodType::MeshType;
   MeshType::ConstPointer mesh = regular->GetCurrentMesh();
   staticMethod->SetStaticMesh(mesh);
@@ -152,7 +153,7 @@ TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
 {
   // the same pixel data with spacing 0.5 x 2, a rotated direction and an origin: the registration in pixel terms is
   // the same, and the field is the reference field scaled by the spacing and rotated by the direction
-  auto reference = SmallRegistration(MeshMode::Regular, 15);
+  auto reference = SmallRegistration(MeshMode::Regular, 30);
   reference->SetRegularGridSize(6);
   reference->Update();
 
@@ -179,13 +180,13 @@ TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
   auto method = MethodType::New();
   method->SetFixedImage(fixed);
   method->SetMovingImage(moving);
-  method->SetNumberOfIterations(15);
+  method->SetNumberOfIterations(30);
   method->SetMeshMode(MeshMode::Regular);
   method->SetRegularGridSize(6);
   method->Update();
   // intensities are identical per pixel, so the SSD (x pixel volume 1) matches
   EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 0.05 * reference->GetFinalSSD());
-  EXPECT_LT(method->GetFinalSSD(), 0.6 * method->GetHistory().front().ssd);
+  EXPECT_LT(method->GetFinalSSD(), 0.7 * method->GetHistory().front().ssd);
   // the field points the same way in pixel terms
   const auto * u = method->GetDisplacementField()->GetBufferPointer();
   const auto * r = reference->GetDisplacementField()->GetBufferPointer();
@@ -193,7 +194,7 @@ TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
   itk::Vector<double, 2> phys;
   phys[0] = u[p][0];
   phys[1] = u[p][1];
-  const auto grid = direction.GetInverse() * phys; // back to the image axes, mm
+  const auto grid = ImageType::DirectionType(direction.GetTranspose()) * phys; // back to the image axes, mm
   EXPECT_GT(std::abs(r[p][0]), 0.2);
   EXPECT_NEAR(grid[0] / spacing[0], r[p][0], 0.35 * std::abs(r[p][0]) + 0.05);
 }
@@ -204,7 +205,6 @@ TEST(FEMRegistrationMethod, EventsAndAbort)
   unsigned int iterations = 0;
   float        lastProgress = -1.0f;
   bool         monotone = true;
-  auto         onIteration = itk::SimpleMemberCommand<void>::New();
   auto         iterationCommand = itk::CStyleCommand::New();
   struct Ctx
   {
