@@ -19,9 +19,7 @@
 // moving.nii.gz (source); for circle-to-epsilon also fidelity_mesh.vtk, the static "high fidelity" mesh of the
 // comparison (CGAL Delaunay refinement of the target's contour, about --fidelity-nodes nodes).
 #include "dmrSyntheticShapes.h"
-#include "dmrDelaunay2D.h"
-#include "dmrSimplexMesh.h"
-#include "itkContourExtractor2DImageFilter.h"
+#include "dmrFidelityMesh.h"
 #include "itkImageFileWriter.h"
 #include "itkMeshFileWriter.h"
 #include "itksys/SystemTools.hxx"
@@ -90,31 +88,7 @@ main(int argc, char * argv[])
     std::cout << "wrote " << outputDir << "/fixed.nii.gz (target) and " << outputDir << "/moving.nii.gz (source)\n";
     if (shape == "epsilon")
     {
-      auto contours = itk::ContourExtractor2DImageFilter<ShapeImageType>::New();
-      contours->SetInput(fixed);
-      contours->SetContourValue(0.5);
-      contours->Update();
-      std::vector<std::vector<double>> polygons;
-      for (unsigned int c = 0; c < contours->GetNumberOfIndexedOutputs(); ++c)
-      {
-        std::vector<double> poly;
-        for (const auto & v : *contours->GetOutput(c)->GetVertexList())
-        {
-          poly.push_back(v[0]);
-          poly.push_back(v[1]);
-        }
-        polygons.push_back(poly);
-      }
-      SimplexMesh<2>                      mesh;
-      std::vector<std::array<int32_t, 3>> triangles;
-      ContourFidelityMesh2D(polygons, CircleToEpsilon::Width - 1.0, CircleToEpsilon::Height - 1.0,
-                            static_cast<size_t>(fidelityNodes), mesh.nodes, triangles);
-      for (const auto & t : triangles)
-      {
-        mesh.elements.push_back({ t[0], t[1], t[2] });
-      }
-      mesh.OrientPositively();
-      mesh.MarkBorderNodes(Grid<2>::FromImage(fixed.GetPointer()));
+      const auto mesh = MakeFidelityMesh(fixed.GetPointer(), 0.5, static_cast<size_t>(fidelityNodes));
       using MeshType = itk::Mesh<double, 2>;
       auto itkMesh = ToItkMesh<2, MeshType>(mesh, fixed.GetPointer());
       auto meshWriter = itk::MeshFileWriter<MeshType>::New();

@@ -70,9 +70,37 @@ MaximumDisplacementInPixels(const Grid<D> & grid, const float * v)
   return m;
 }
 
-/** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until its largest
- * displacement is below half a pixel, then the field is composed with itself as many times. scratch is resized as
- * needed. Returns the number of squarings. */
+/** Largest difference of v between neighbouring pixels, in pixel units (max over pixels, axes k and components r
+ * of |v_r(p + e_k) - v_r(p)| / spacing_r): a discrete bound on the displacement gradient. */
+template <unsigned int D>
+double
+MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v)
+{
+  double m = 0.0;
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto idx = grid.Index(p);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
+      {
+        continue;
+      }
+      const size_t q = p + grid.stride[k];
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        m = std::max(m, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
+      }
+    }
+  }
+  return m;
+}
+
+/** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until both its largest
+ * displacement and its largest change between neighbouring pixels are below half a pixel, then the field is
+ * composed with itself as many times. The second bound keeps each small step invertible where v varies sharply
+ * (thin elements of a static mesh), so det J stays positive. scratch is resized as needed. Returns the number of
+ * squarings. */
 template <unsigned int D>
 unsigned int
 ExponentialField(const Grid<D> &      grid,
@@ -82,7 +110,8 @@ ExponentialField(const Grid<D> &      grid,
                  MultiThreaderBase *  threader)
 {
   const size_t n = grid.numberOfPixels * D;
-  const double maxNorm = MaximumDisplacementInPixels<D>(grid, v);
+  const double maxNorm =
+    std::max(MaximumDisplacementInPixels<D>(grid, v), MaximumNeighbourDifferenceInPixels<D>(grid, v));
   unsigned int squarings = 0;
   while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
   {

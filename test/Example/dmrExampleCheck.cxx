@@ -1,0 +1,304 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// dmrExampleCheck: small helper for the command-line smoke tests of the example tools (test/Example).
+//   dmrExampleCheck same-grid A B          exit 0 iff A and B have the same dimension, size, spacing, origin and
+//                                          direction (any pixel type, any number of components)
+//   dmrExampleCheck components A N         exit 0 iff every pixel of A has N components
+//   dmrExampleCheck min-above A T          exit 0 iff every pixel (every component) of A is > T
+//   dmrExampleCheck make-3d OUT            writes a 16x12x10 float image with a gradient and a bright cube
+//   dmrExampleCheck make-constant OUT      writes a 32x32 float image that is 7 everywhere
+//   dmrExampleCheck make-2d OUT            writes a 32x32 float image with a gradient and a bright square
+#include "itkImage.h"
+#include "itkVectorImage.h"
+#include "itkImageFileReader.h"
+#include "itkImageFileWriter.h"
+#include "itkImageIOFactory.h"
+#include "itkImageRegionConstIterator.h"
+#include "itkImageRegionIteratorWithIndex.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <iostream>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+namespace
+{
+/** Dimension of an image file as stored (no squeezing of unit axes). */
+unsigned int
+FileDimension(const std::string & path)
+{
+  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
+  if (!io)
+  {
+    throw std::runtime_error("cannot read an image from " + path);
+  }
+  io->SetFileName(path);
+  io->ReadImageInformation();
+  return io->GetNumberOfDimensions();
+}
+
+template <unsigned int D>
+typename itk::VectorImage<double, D>::Pointer
+Read(const std::string & path)
+{
+  auto reader = itk::ImageFileReader<itk::VectorImage<double, D>>::New();
+  reader->SetFileName(path);
+  reader->Update();
+  return reader->GetOutput();
+}
+
+template <unsigned int D>
+int
+SameGrid(const std::string & pathA, const std::string & pathB)
+{
+  const auto a = Read<D>(pathA);
+  const auto b = Read<D>(pathB);
+  int        failures = 0;
+  const auto sizeA = a->GetLargestPossibleRegion().GetSize();
+  const auto sizeB = b->GetLargestPossibleRegion().GetSize();
+  if (sizeA != sizeB)
+  {
+    std::cerr << "size differs: " << sizeA << " vs " << sizeB << '\n';
+    ++failures;
+  }
+  if (a->GetLargestPossibleRegion().GetIndex() != b->GetLargestPossibleRegion().GetIndex())
+  {
+    std::cerr << "start index differs\n";
+    ++failures;
+  }
+  const double tol = 1e-5;
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    const double scale = std::max(1.0, std::abs(a->GetSpacing()[i]));
+    if (std::abs(a->GetSpacing()[i] - b->GetSpacing()[i]) > tol * scale)
+    {
+      std::cerr << "spacing differs: " << a->GetSpacing() << " vs " << b->GetSpacing() << '\n';
+      ++failures;
+      break;
+    }
+  }
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    const double scale = std::max(1.0, std::abs(a->GetOrigin()[i]));
+    if (std::abs(a->GetOrigin()[i] - b->GetOrigin()[i]) > tol * scale)
+    {
+      std::cerr << "origin differs: " << a->GetOrigin() << " vs " << b->GetOrigin() << '\n';
+      ++failures;
+      break;
+    }
+  }
+  for (unsigned int i = 0; i < D; ++i)
+  {
+    for (unsigned int j = 0; j < D; ++j)
+    {
+      if (std::abs(a->GetDirection()(i, j) - b->GetDirection()(i, j)) > tol)
+      {
+        std::cerr << "direction differs:\n" << a->GetDirection() << "vs\n" << b->GetDirection();
+        ++failures;
+        i = j = D;
+      }
+    }
+  }
+  if (failures == 0)
+  {
+    std::cout << "same grid: size " << sizeA << ", spacing " << a->GetSpacing() << ", origin " << a->GetOrigin()
+              << '\n';
+  }
+  return failures == 0 ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+template <unsigned int D>
+int
+Components(const std::string & path, unsigned int expected)
+{
+  const auto   image = Read<D>(path);
+  const auto n = image->GetNumberOfComponentsPerPixel();
+  if (n != expected)
+  {
+    std::cerr << path << " has " << n << " components per pixel, expected " << expected << '\n';
+    return EXIT_FAILURE;
+  }
+  std::cout << path << ": " << n << " components per pixel\n";
+  return EXIT_SUCCESS;
+}
+
+template <unsigned int D>
+int
+MinAbove(const std::string & path, double threshold)
+{
+  const auto image = Read<D>(path);
+  double     lowest = std::numeric_limits<double>::infinity();
+  size_t     count = 0;
+  for (itk::ImageRegionConstIterator<itk::VectorImage<double, D>> it(image, image->GetLargestPossibleRegion());
+       !it.IsAtEnd();
+       ++it)
+  {
+    const auto v = it.Get();
+    for (unsigned int k = 0; k < v.GetSize(); ++k)
+    {
+      if (!std::isfinite(v[k]))
+      {
+        std::cerr << path << " holds a non-finite value\n";
+        return EXIT_FAILURE;
+      }
+      lowest = std::min(lowest, v[k]);
+      ++count;
+    }
+  }
+  if (count == 0 || !(lowest > threshold))
+  {
+    std::cerr << path << ": minimum " << lowest << " over " << count << " values is not > " << threshold << '\n';
+    return EXIT_FAILURE;
+  }
+  std::cout << path << ": minimum " << lowest << " > " << threshold << '\n';
+  return EXIT_SUCCESS;
+}
+
+template <typename TImage>
+void
+Write(const TImage * image, const std::string & path)
+{
+  auto writer = itk::ImageFileWriter<TImage>::New();
+  writer->SetInput(image);
+  writer->SetFileName(path);
+  writer->Update();
+}
+
+int
+Make3D(const std::string & path)
+{
+  using ImageType = itk::Image<float, 3>;
+  auto                 image = ImageType::New();
+  ImageType::SizeType  size{ { 16, 12, 10 } };
+  image->SetRegions(ImageType::RegionType(size));
+  image->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    const bool   cube = idx[0] >= 4 && idx[0] < 10 && idx[1] >= 3 && idx[1] < 8 && idx[2] >= 2 && idx[2] < 7;
+    it.Set(static_cast<float>(0.01 * idx[0] + (cube ? 1.0 : 0.0)));
+  }
+  Write(image.GetPointer(), path);
+  return FileDimension(path) == 3 ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+int
+Make2D(const std::string & path, bool constant)
+{
+  using ImageType = itk::Image<float, 2>;
+  auto                image = ImageType::New();
+  ImageType::SizeType size{ { 32, 32 } };
+  image->SetRegions(ImageType::RegionType(size));
+  image->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    const bool   square = idx[0] >= 8 && idx[0] < 20 && idx[1] >= 10 && idx[1] < 24;
+    it.Set(constant ? 7.0f : static_cast<float>(0.01 * idx[1] + (square ? 1.0 : 0.0)));
+  }
+  Write(image.GetPointer(), path);
+  return FileDimension(path) == 2 ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+int
+Usage()
+{
+  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT | make-2d OUT | make-constant OUT\n";
+  return 2;
+}
+} // namespace
+
+int
+main(int argc, char * argv[])
+{
+  if (argc < 3)
+  {
+    return Usage();
+  }
+  const std::string mode = argv[1];
+  try
+  {
+    if (mode == "make-3d" && argc == 3)
+    {
+      return Make3D(argv[2]);
+    }
+    if (mode == "make-constant" && argc == 3)
+    {
+      return Make2D(argv[2], true);
+    }
+    if (mode == "make-2d" && argc == 3)
+    {
+      return Make2D(argv[2], false);
+    }
+    if (argc != 4)
+    {
+      return Usage();
+    }
+    const unsigned int d = FileDimension(argv[2]);
+    if (mode == "same-grid")
+    {
+      const unsigned int dB = FileDimension(argv[3]);
+      if (d != dB)
+      {
+        std::cerr << "dimension differs: " << d << "D vs " << dB << "D\n";
+        return EXIT_FAILURE;
+      }
+      if (d == 2)
+        return SameGrid<2>(argv[2], argv[3]);
+      if (d == 3)
+        return SameGrid<3>(argv[2], argv[3]);
+    }
+    else if (mode == "components" || mode == "min-above")
+    {
+      char *       end = nullptr;
+      const double value = std::strtod(argv[3], &end);
+      if (*end != '\0')
+      {
+        return Usage();
+      }
+      if (mode == "components")
+      {
+        if (d == 2)
+          return Components<2>(argv[2], static_cast<unsigned int>(value));
+        if (d == 3)
+          return Components<3>(argv[2], static_cast<unsigned int>(value));
+      }
+      else
+      {
+        if (d == 2)
+          return MinAbove<2>(argv[2], value);
+        if (d == 3)
+          return MinAbove<3>(argv[2], value);
+      }
+    }
+    else
+    {
+      return Usage();
+    }
+    std::cerr << "unsupported dimension " << d << '\n';
+    return EXIT_FAILURE;
+  }
+  catch (const std::exception & e)
+  {
+    std::cerr << "dmrExampleCheck: " << e.what() << '\n';
+    return EXIT_FAILURE;
+  }
+}

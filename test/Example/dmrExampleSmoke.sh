@@ -1,0 +1,290 @@
+#!/usr/bin/env bash
+#
+#
+#  DynamicMeshRegistration
+#
+#  Licensed under the Apache License, Version 2.0 (the "License");
+#  you may not use this file except in compliance with the License.
+#  You may obtain a copy of the License at
+#
+#         http://www.apache.org/licenses/LICENSE-2.0.txt
+#
+#  Unless required by applicable law or agreed to in writing, software
+#  distributed under the License is distributed on an "AS IS" BASIS,
+#  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+#  See the License for the specific language governing permissions and
+#  limitations under the License.
+#
+#
+# Command-line smoke tests of the example tools (STYLE.md section 6, last bullet). Run by ctest, one case per test:
+#   dmrExampleSmoke.sh CASE WORKDIR REG GEN DICE CHECK VERSION [DATADIR]
+# REG/GEN/DICE: itkDynamicMeshRegistration, dmrGenerateShapes, dmrImageDice; CHECK: dmrExampleCheck (test/Example);
+# VERSION: the project version --version must print; DATADIR: the epsilon pair made by the "generate" case.
+set -u -o pipefail
+
+CASE=$1 W=$2 REG=$3 GEN=$4 DICE=$5 CHECK=$6 VERSION=$7 DATA=${8:-}
+PREFIX="itkDynamicMeshRegistration: error:"
+FAILURES=0
+
+fail() { echo "FAIL: $*"; FAILURES=$((FAILURES + 1)); }
+pass() { echo "ok: $*"; }
+check() { # check "description" command...: the command must exit 0
+  local what=$1; shift
+  if "$@"; then pass "$what"; else fail "$what"; fi
+}
+finish() {
+  if [ "$FAILURES" -ne 0 ]; then echo "$CASE: $FAILURES check(s) failed"; exit 1; fi
+  echo "$CASE: all checks passed"; exit 0
+}
+nonempty() { [ -f "$1" ] && [ -s "$1" ]; }
+# a JSON number of a top-level key of report.json (the tool writes one key per line)
+json_number() { sed -n "s/^ *\"$2\": *\(-\{0,1\}[0-9][0-9.eE+-]*\) *,\{0,1\}$/\1/p" "$1"; }
+json_string() { sed -n "s/^ *\"$2\": *\"\([^\"]*\)\" *,\{0,1\}$/\1/p" "$1"; }
+is_number() { [[ $1 =~ ^-?[0-9]+(\.[0-9]*)?([eE][-+]?[0-9]+)?$ ]]; }
+awk_true() { awk "BEGIN { exit !($1) }"; }
+# listing (names, sizes, checksums) of a directory tree, hidden files included
+snapshot() { (cd "$1" && find . -mindepth 1 -printf '%y %p %s\n' | sort && find . -type f -exec md5sum {} + | sort); }
+
+rm -rf "$W" && mkdir -p "$W" || { echo "cannot create $W"; exit 1; }
+cd "$W" || exit 1
+export ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=2
+
+# run REG with the given arguments; stdout/stderr/exit code in $W/{stdout,stderr} and $RC
+run_reg() {
+  "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
+  RC=$?
+}
+
+# expect_bad_input NAME ARGS...: the arguments (which must not include --output-dir) are bad input. Checked twice:
+# into an output directory that does not exist (it must not be created) and into an existing directory holding a
+# previous file (it must stay byte-for-byte unchanged). Each time: exit code != 0, nothing on stdout is required,
+# exactly one line on stderr, starting with the error prefix.
+expect_bad_input() {
+  local name=$1; shift
+  local fresh="$W/out-$name" existing="$W/existing-$name"
+  local before after
+  mkdir -p "$existing" && echo "previous run" >"$existing/previous.txt" && echo "stale" >"$existing/warped.nii.gz"
+  before=$(snapshot "$existing")
+  local parent_before parent_after
+  parent_before=$(ls -A "$W")
+  for dir in "$fresh" "$existing"; do
+    run_reg "$@" --output-dir "$dir"
+    local lines
+    lines=$(wc -l <"$W/stderr")
+    echo "[$name -> $(basename "$dir")] exit $RC, stderr: $(cat "$W/stderr")"
+    if [ "$RC" -ne 0 ]; then pass "$name: non-zero exit ($RC)"; else fail "$name: exit code 0 on bad input"; fi
+    if [ "$lines" -eq 1 ] && [ "$(tail -c 1 "$W/stderr" | od -An -c | tr -d ' ')" = '\n' ]; then
+      pass "$name: exactly one line on stderr"
+    else
+      fail "$name: expected exactly one line on stderr, got $lines:"; sed 's/^/    | /' "$W/stderr"
+    fi
+    if [[ "$(head -n 1 "$W/stderr")" == "$PREFIX"* ]]; then
+      pass "$name: stderr starts with '$PREFIX'"
+    else
+      fail "$name: stderr does not start with '$PREFIX'"
+    fi
+  done
+  if [ ! -e "$fresh" ]; then pass "$name: output dir not created"; else fail "$name: output dir $fresh was created:"; ls -lA "$fresh"; fi
+  after=$(snapshot "$existing")
+  if [ "$before" = "$after" ]; then
+    pass "$name: existing output dir unchanged"
+  else
+    fail "$name: existing output dir changed:"; diff <(echo "$before") <(echo "$after") | sed 's/^/    /'
+  fi
+  rm -f "$W/stdout" "$W/stderr"
+  parent_after=$(ls -A "$W")
+  if [ "$parent_before" = "$parent_after" ]; then
+    pass "$name: nothing else written next to the output dir"
+  else
+    fail "$name: files appeared in $W:"; diff <(echo "$parent_before") <(echo "$parent_after") | sed 's/^/    /'
+  fi
+}
+
+# check_run_outputs OUT ITERATIONS MESH_MODE NODES: the common checks on a successful run's output directory
+check_run_outputs() {
+  local out=$1 iterations=$2 mode=$3 nodes=$4 report="$1/report.json"
+  for f in warped.nii.gz displacement.nii.gz jacobian.nii.gz energy.csv mesh.pvd report.json; do
+    check "$f exists and is non-empty" nonempty "$out/$f"
+  done
+  local vtus
+  vtus=$(cd "$out" && ls mesh_[0-9][0-9][0-9][0-9].vtu 2>/dev/null)
+  check "at least one mesh_NNNN.vtu written" test -n "$vtus"
+  if compgen -G "$out/.dmr-partial-*" >/dev/null; then fail "staging folder left in $out"; else pass "no staging folder left"; fi
+
+  # report.json
+  if command -v jq >/dev/null; then check "report.json is valid JSON (jq)" jq -e . "$report" >/dev/null; fi
+  for key in dimension nodes iterations ssd_initial ssd_final jacobian_min jacobian_max; do
+    local v
+    v=$(json_number "$report" "$key")
+    if is_number "$v"; then pass "report: $key = $v"; else fail "report: numeric key '$key' missing or not a number ('$v')"; fi
+  done
+  for key in mesh_mode backend; do
+    grep -Eq "^ *\"$key\": *\"[^\"]+\"" "$report" && pass "report: $key present" || fail "report: key '$key' missing"
+  done
+  local timing
+  timing=$(sed -n 's/^ *"timing_s": *{\(.*\)} *,\{0,1\}$/\1/p' "$report")
+  check "report: timing_s is an object" test -n "$timing"
+  for key in total initial_tessellation tessellation_optimization mesh_construction barycentric registration; do
+    local v
+    v=$(echo "$timing" | sed -n "s/.*\"$key\": *\([-0-9.eE+]*\).*/\1/p")
+    if is_number "$v" && awk_true "$v >= 0"; then pass "report: timing_s.$key = $v"; else fail "report: timing_s.$key missing or negative ('$v')"; fi
+  done
+  check "report: dimension is 2" test "$(json_number "$report" dimension)" = 2
+  check "report: nodes is $nodes" test "$(json_number "$report" nodes)" = "$nodes"
+  check "report: iterations is $iterations" test "$(json_number "$report" iterations)" = "$iterations"
+  check "report: mesh_mode is $mode" test "$(json_string "$report" mesh_mode)" = "$mode"
+  local backend
+  backend=$(json_string "$report" backend)
+  check "report: backend is cpu or cuda ('$backend')" test "$backend" = cpu -o "$backend" = cuda
+  local ssd0 ssd1 jmin jmax
+  ssd0=$(json_number "$report" ssd_initial); ssd1=$(json_number "$report" ssd_final)
+  jmin=$(json_number "$report" jacobian_min); jmax=$(json_number "$report" jacobian_max)
+  if is_number "$ssd0" && is_number "$ssd1" && awk_true "$ssd1 < $ssd0"; then pass "ssd_final $ssd1 < ssd_initial $ssd0"; else fail "ssd_final ($ssd1) not < ssd_initial ($ssd0)"; fi
+  if is_number "$jmin" && awk_true "$jmin > 0"; then pass "jacobian_min $jmin > 0"; else fail "jacobian_min ($jmin) not > 0"; fi
+  if is_number "$jmin" && is_number "$jmax" && awk_true "$jmax >= $jmin"; then pass "jacobian_max >= jacobian_min"; else fail "jacobian_max ($jmax) < jacobian_min ($jmin)"; fi
+
+  # energy.csv: a header and one row per iteration, numbered 1..K, every row as wide as the header
+  local header rows
+  header=$(head -n 1 "$out/energy.csv")
+  check "energy.csv header starts with 'iteration,'" test "${header#iteration,}" != "$header"
+  rows=$(tail -n +2 "$out/energy.csv" | grep -c .)
+  check "energy.csv has $iterations data rows (got $rows)" test "$rows" = "$iterations"
+  if awk -F, -v n="$iterations" 'NR == 1 { w = NF; next }
+        NF != w || $1 != NR - 1 { bad = 1 }
+        { for (i = 2; i <= NF; ++i) if ($i !~ /^-?[0-9.]+([eE][-+]?[0-9]+)?$/) bad = 1 }
+        END { exit bad || NR - 1 != n }' "$out/energy.csv"; then
+    pass "energy.csv rows are numbered 1..$iterations, numeric and as wide as the header"
+  else
+    fail "energy.csv rows malformed:"; sed 's/^/    | /' "$out/energy.csv"
+  fi
+
+  # mesh.pvd references existing, non-empty .vtu files, and every written .vtu is referenced
+  local refs
+  refs=$(grep -o 'file="[^"]*"' "$out/mesh.pvd" | sed 's/^file="//; s/"$//')
+  check "mesh.pvd references at least one file" test -n "$refs"
+  for r in $refs; do
+    if nonempty "$out/$r" && grep -q '<VTKFile type="UnstructuredGrid"' "$out/$r"; then pass "mesh.pvd -> $r exists (UnstructuredGrid)"; else fail "mesh.pvd -> $r missing, empty or not a .vtu"; fi
+  done
+  for v in $vtus; do
+    echo "$refs" | grep -qx "$v" && pass "$v is referenced by mesh.pvd" || fail "$v is not referenced by mesh.pvd"
+  done
+  check "mesh_0001.vtu (first iteration) written" nonempty "$out/mesh_0001.vtu"
+  check "mesh_$(printf %04d "$iterations").vtu (last iteration) written" nonempty "$out/mesh_$(printf %04d "$iterations").vtu"
+
+  # output images on the fixed image's grid
+  for f in warped displacement jacobian; do
+    check "$f.nii.gz has the fixed image's size/spacing/origin/direction" "$CHECK" same-grid "$DATA/fixed.nii.gz" "$out/$f.nii.gz"
+  done
+  check "warped.nii.gz is scalar" "$CHECK" components "$out/warped.nii.gz" 1
+  check "jacobian.nii.gz is scalar" "$CHECK" components "$out/jacobian.nii.gz" 1
+  check "displacement.nii.gz has 2 components" "$CHECK" components "$out/displacement.nii.gz" 2
+  check "jacobian.nii.gz: det J > 0 in every pixel" "$CHECK" min-above "$out/jacobian.nii.gz" 0
+}
+
+case "$CASE" in
+help)
+  for flag in --help -h; do
+    run_reg $flag
+    check "$flag exits 0" test "$RC" = 0
+    check "$flag prints nothing on stderr" test ! -s "$W/stderr"
+    check "$flag prints the usage line" grep -q '^usage: itkDynamicMeshRegistration --fixed F --moving M --output-dir D' "$W/stdout"
+    for opt in --nodes --iterations --levels --mesh --lambda --mu --threads --save-mesh-every --report \
+               --energy-ratio --alpha-factor --backend --version; do
+      grep -q -- "$opt" "$W/stdout" && pass "$flag documents $opt" || fail "$flag does not document $opt"
+    done
+    check "$flag lists the outputs" grep -q 'warped.nii.gz.*displacement.nii.gz' "$W/stdout"
+  done
+  # --help wins even after other (valid or invalid) arguments, and writes nothing
+  run_reg --fixed nowhere.nii.gz --output-dir "$W/out" --help
+  check "--help after other options exits 0" test "$RC" = 0
+  check "--help creates no output dir" test ! -e "$W/out"
+  ;;
+version)
+  run_reg --version
+  check "--version exits 0" test "$RC" = 0
+  check "--version prints nothing on stderr" test ! -s "$W/stderr"
+  check "--version prints one line" test "$(wc -l <"$W/stdout")" = 1
+  echo "version: $(cat "$W/stdout")"
+  check "--version prints 'itkDynamicMeshRegistration $VERSION (ITK x.y...'" \
+    grep -Eq "^itkDynamicMeshRegistration ${VERSION//./\\.} \(ITK [0-9]+\.[0-9]+" "$W/stdout"
+  ;;
+generate)
+  # the shared epsilon pair (a ctest fixture for the other cases)
+  rm -rf "$DATA"
+  "$GEN" --case epsilon --output-dir "$DATA"
+  check "dmrGenerateShapes exits 0" test $? = 0
+  for f in fixed.nii.gz moving.nii.gz fidelity_mesh.vtk; do check "$f written" nonempty "$DATA/$f"; done
+  check "fixed and moving share a grid" "$CHECK" same-grid "$DATA/fixed.nii.gz" "$DATA/moving.nii.gz"
+  check "fixed is 512x512" bash -c "'$CHECK' same-grid '$DATA/fixed.nii.gz' '$DATA/fixed.nii.gz' | grep -q '\[512, 512\]'"
+  d_self=$("$DICE" "$DATA/fixed.nii.gz" "$DATA/fixed.nii.gz")
+  d_pair=$("$DICE" "$DATA/fixed.nii.gz" "$DATA/moving.nii.gz")
+  echo "Dice(fixed, fixed) = $d_self, Dice(fixed, moving) = $d_pair"
+  check "dmrImageDice: Dice of an image with itself is 1" awk_true "$d_self == 1"
+  check "dmrImageDice: circle vs epsilon overlap in (0, 1)" awk_true "$d_pair > 0 && $d_pair < 1"
+  ;;
+run-dynamic)
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \
+    --nodes 30 --iterations 5 --threads 2 --report "$W/copy-of-report.json"
+  cat "$W/stdout" "$W/stderr"
+  check "registration exits 0" test "$RC" = 0
+  check_run_outputs "$out" 5 dynamic 30
+  check "--report FILE holds the same report as D/report.json" cmp -s "$W/copy-of-report.json" "$out/report.json"
+  d_before=$("$DICE" "$DATA/fixed.nii.gz" "$DATA/moving.nii.gz")
+  d_after=$("$DICE" "$DATA/fixed.nii.gz" "$out/warped.nii.gz")
+  echo "Dice(fixed, moving) = $d_before, Dice(fixed, warped) = $d_after"
+  check "Dice(fixed, warped) > Dice(fixed, moving)" awk_true "$d_after > $d_before"
+  ;;
+run-regular)
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \
+    --nodes 30 --iterations 5 --threads 2 --mesh regular
+  cat "$W/stdout" "$W/stderr"
+  check "registration exits 0" test "$RC" = 0
+  check_run_outputs "$out" 5 regular 30
+  ;;
+run-fidelity)
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \
+    --nodes 30 --iterations 5 --threads 2 --mesh "$DATA/fidelity_mesh.vtk"
+  cat "$W/stdout" "$W/stderr"
+  check "registration exits 0" test "$RC" = 0
+  check_run_outputs "$out" 5 static 30
+  ;;
+bad-missing-fixed)
+  expect_bad_input missing-fixed --fixed "$W/does-not-exist.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2
+  ;;
+bad-dimension-mismatch)
+  check "make a 3D image" "$CHECK" make-3d "$W/image3d.nii.gz"
+  expect_bad_input fixed2d-moving3d --fixed "$DATA/fixed.nii.gz" --moving "$W/image3d.nii.gz" --nodes 30 --iterations 2
+  ;;
+bad-nodes-too-few)
+  expect_bad_input nodes-3 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 3 --iterations 2
+  ;;
+bad-nodes-too-many)
+  # 512 x 512 = 262144 pixels
+  expect_bad_input nodes-262145 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 262145 --iterations 2
+  ;;
+bad-constant-image)
+  check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"
+  check "make a 32x32 non-constant partner" "$CHECK" make-2d "$W/image2d.nii.gz"
+  expect_bad_input constant-fixed --fixed "$W/constant.nii.gz" --moving "$W/image2d.nii.gz" --nodes 10 --iterations 2
+  expect_bad_input constant-moving --fixed "$W/image2d.nii.gz" --moving "$W/constant.nii.gz" --nodes 10 --iterations 2
+  ;;
+bad-unknown-option)
+  expect_bad_input unknown-option --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --no-such-option 1
+  expect_bad_input unknown-last --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --frobnicate
+  ;;
+bad-iterations)
+  expect_bad_input iterations-abc --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations abc
+  expect_bad_input iterations-5x --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations 5x
+  expect_bad_input iterations-empty --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations ""
+  ;;
+bad-missing-mesh)
+  expect_bad_input missing-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
+    --mesh "$W/no-such-mesh.vtk"
+  ;;
+*)
+  echo "unknown case $CASE"; exit 2 ;;
+esac
+finish
