@@ -55,7 +55,7 @@ FileDimension(const std::string & path)
   return io->GetNumberOfDimensions();
 }
 
-template <unsigned int D>
+template<unsigned int D>
 typename itk::VectorImage<double, D>::Pointer
 Read(const std::string & path)
 {
@@ -65,7 +65,7 @@ Read(const std::string & path)
   return reader->GetOutput();
 }
 
-template <unsigned int D>
+template<unsigned int D>
 int
 SameGrid(const std::string & pathA, const std::string & pathB)
 {
@@ -125,11 +125,11 @@ SameGrid(const std::string & pathA, const std::string & pathB)
   return failures == 0 ? EXIT_SUCCESS : EXIT_FAILURE;
 }
 
-template <unsigned int D>
+template<unsigned int D>
 int
 Components(const std::string & path, unsigned int expected)
 {
-  const auto   image = Read<D>(path);
+  const auto image = Read<D>(path);
   const auto n = image->GetNumberOfComponentsPerPixel();
   if (n != expected)
   {
@@ -140,7 +140,7 @@ Components(const std::string & path, unsigned int expected)
   return EXIT_SUCCESS;
 }
 
-template <unsigned int D>
+template<unsigned int D>
 int
 MinAbove(const std::string & path, double threshold)
 {
@@ -172,7 +172,7 @@ MinAbove(const std::string & path, double threshold)
   return EXIT_SUCCESS;
 }
 
-template <typename TImage>
+template<typename TImage>
 void
 Write(const TImage * image, const std::string & path)
 {
@@ -186,8 +186,8 @@ int
 Make3D(const std::string & path)
 {
   using ImageType = itk::Image<float, 3>;
-  auto                 image = ImageType::New();
-  ImageType::SizeType  size{ { 16, 12, 10 } };
+  auto                image = ImageType::New();
+  ImageType::SizeType size{ { 16, 12, 10 } };
   image->SetRegions(ImageType::RegionType(size));
   image->Allocate();
   for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
@@ -221,7 +221,8 @@ Make2D(const std::string & path, bool constant)
 int
 Usage()
 {
-  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT | make-2d OUT | make-constant OUT\n";
+  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT | make-2d OUT | "
+               "make-constant OUT\n";
   return 2;
 }
 } // namespace
