@@ -21,7 +21,7 @@
 #include "dmrSyntheticShapes.h"
 #include "dmrFidelityMesh.h"
 #include "itkImageFileWriter.h"
-#include "itkMeshFileWriter.h"
+#include "dmrMeshFileIO.h"
 #include "itksys/SystemTools.hxx"
 #include <iostream>
 
@@ -91,10 +91,7 @@ main(int argc, char * argv[])
       const auto mesh = MakeFidelityMesh(fixed.GetPointer(), 0.5, static_cast<size_t>(fidelityNodes));
       using MeshType = itk::Mesh<double, 2>;
       auto itkMesh = ToItkMesh<2, MeshType>(mesh, fixed.GetPointer());
-      auto meshWriter = itk::MeshFileWriter<MeshType>::New();
-      meshWriter->SetInput(itkMesh);
-      meshWriter->SetFileName(outputDir + "/fidelity_mesh.vtk");
-      meshWriter->Update();
+      dmrtools::WriteMeshFile(itkMesh.GetPointer(), outputDir + "/fidelity_mesh.vtk");
       std::cout << "wrote " << outputDir << "/fidelity_mesh.vtk (" << mesh.NumberOfNodes() << " nodes, "
                 << mesh.elements.size() << " triangles)\n";
     }

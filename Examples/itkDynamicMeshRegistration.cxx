@@ -28,7 +28,8 @@
 #include "itkGDCMImageIO.h"
 #include "itkGDCMSeriesFileNames.h"
 #include "itkImageIOFactory.h"
-#include "itkMeshFileReader.h"
+#include "dmrMeshFileIO.h"
+#include "itk_zlib.h"
 #include "itkResampleImageFilter.h"
 #include "itkLinearInterpolateImageFunction.h"
 #include "itkCommand.h"
@@ -67,7 +68,8 @@ struct UsageError : std::runtime_error
 struct Options
 {
   std::string  fixed, moving, outputDir, report, mesh{ "dynamic" }, backend{ "auto" };
-  long         nodes{ -1 };
+  long         nodes{ 0 };
+  bool         nodesGiven{ false };
   long         iterations{ 100 };
   long         levels{ 3 };
   long         threads{ 0 };
@@ -158,7 +160,10 @@ ParseArguments(int argc, char * argv[])
     else if (a == "--backend")
       opt.backend = v;
     else if (a == "--nodes")
+    {
       opt.nodes = ParseInteger(a, v);
+      opt.nodesGiven = true;
+    }
     else if (a == "--iterations")
       opt.iterations = ParseInteger(a, v);
     else if (a == "--levels")
@@ -200,6 +205,14 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--backend must be auto, cpu or cuda");
   if (opt.regularSize != 0 && opt.regularSize < 2)
     throw UsageError("--regular-size must be at least 2");
+  if (!opt.report.empty())
+  {
+    const std::string dir = itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
+    if (!itksys::SystemTools::FileIsDirectory(dir))
+      throw UsageError("--report: no such directory: " + dir);
+    if (itksys::SystemTools::FileIsDirectory(opt.report))
+      throw UsageError("--report names a directory: " + opt.report);
+  }
   return opt;
 }
 
@@ -220,6 +233,21 @@ ImageDimensionOf(const std::string & path)
       throw UsageError("directory holds no DICOM series: " + path);
     }
     return 3;
+  }
+  if (itksys::SystemTools::GetFilenameLastExtension(path) == ".gz")
+  {
+    // ITK's readers do not notice a gzip stream that ends early: read it through once and check its trailer
+    gzFile      file = gzopen(path.c_str(), "rb");
+    std::string buffer(1 << 20, '\0');
+    int         got = 0;
+    while (file && (got = gzread(file, &buffer[0], static_cast<unsigned int>(buffer.size()))) > 0)
+    {
+    }
+    const bool ok = file && got == 0 && gzclose(file) == Z_OK;
+    if (!ok)
+    {
+      throw UsageError("cannot read " + path + ": the compressed file is truncated or corrupt");
+    }
   }
   auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
   if (!io)
@@ -404,9 +432,9 @@ Run(const Options & opt)
   {
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
-  const long nodes = opt.nodes > 0 ? opt.nodes : (D == 2 ? 100 : 3000);
+  const long nodes = opt.nodesGiven ? opt.nodes : (D == 2 ? 100 : 3000);
   const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
-  if (opt.nodes != -1 && (opt.nodes < 4 || opt.nodes > pixels))
+  if (nodes < 4 || nodes > pixels)
   {
     throw UsageError("--nodes must be between 4 and the number of pixels (" + std::to_string(pixels) + "), got " +
                      std::to_string(opt.nodes));
@@ -469,18 +497,21 @@ Run(const Options & opt)
     {
       throw UsageError("--mesh: no such mesh file: " + opt.mesh);
     }
-    auto reader = itk::MeshFileReader<MeshType>::New();
-    reader->SetFileName(opt.mesh);
+    typename MeshType::Pointer mesh;
     try
     {
-      reader->Update();
+      mesh = dmrtools::ReadMeshFile<MeshType>(opt.mesh);
     }
     catch (const itk::ExceptionObject & e)
     {
-      throw UsageError("--mesh: cannot read " + opt.mesh + ": " + e.GetDescription());
+      throw UsageError("--mesh: cannot read " + opt.mesh + " as a mesh: " + e.GetDescription());
+    }
+    catch (const std::exception & e)
+    {
+      throw UsageError("--mesh: cannot read " + opt.mesh + " as a mesh: " + e.what());
     }
     method->SetMeshMode(itk::DynamicMeshRegistrationEnums::MeshMode::Static);
-    method->SetStaticMesh(reader->GetOutput());
+    method->SetStaticMesh(mesh);
     meshMode = "static";
   }
 
@@ -608,9 +639,9 @@ Run(const Options & opt)
     std::ofstream out(staging.Path(reportName));
     out << json.str();
   }
-  staging.Commit();
   if (!opt.report.empty())
   {
+    // written before the outputs are committed, so a failure here leaves nothing behind in the output directory
     std::ofstream out(opt.report);
     out << json.str();
     if (!out)
@@ -618,6 +649,7 @@ Run(const Options & opt)
       throw std::runtime_error("could not write the report " + opt.report);
     }
   }
+  staging.Commit();
   std::cout << "registered " << opt.moving << " -> " << opt.fixed << " in " << t.total << " s (" << history.size()
             << " iterations, " << meshMode << " mesh, SSD " << ssdInitial << " -> " << method->GetFinalSSD()
             << ", det J in [" << jacobianRange.first << ", " << jacobianRange.second << "])\n"
@@ -627,9 +659,36 @@ Run(const Options & opt)
 }
 } // namespace
 
+/** Error messages are one line: ITK's exception texts can span several. */
+std::string
+OneLine(std::string message)
+{
+  for (char & c : message)
+  {
+    if (c == '\n' || c == '\r' || c == '\t')
+    {
+      c = ' ';
+    }
+  }
+  std::string out;
+  for (char c : message)
+  {
+    if (!(c == ' ' && !out.empty() && out.back() == ' '))
+    {
+      out += c;
+    }
+  }
+  while (!out.empty() && out.back() == ' ')
+  {
+    out.pop_back();
+  }
+  return out;
+}
+
 int
 main(int argc, char * argv[])
 {
+  itk::Object::GlobalWarningDisplayOff(); // warnings (e.g. GDCM's "no series found") would break one-line errors
   try
   {
     const Options opt = ParseArguments(argc, argv);
@@ -656,17 +715,17 @@ main(int argc, char * argv[])
   }
   catch (const UsageError & e)
   {
-    std::cerr << "itkDynamicMeshRegistration: error: " << e.what() << '\n';
+    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.what()) << '\n';
     return 2;
   }
   catch (const itk::ExceptionObject & e)
   {
-    std::cerr << "itkDynamicMeshRegistration: error: " << e.GetDescription() << '\n';
+    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.GetDescription()) << '\n';
     return 1;
   }
   catch (const std::exception & e)
   {
-    std::cerr << "itkDynamicMeshRegistration: error: " << e.what() << '\n';
+    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.what()) << '\n';
     return 1;
   }
 }
