@@ -309,7 +309,7 @@ WriteMeshVTU(const TMesh * mesh, const std::string & path)
   for (auto it = mesh->GetPoints()->Begin(); it != mesh->GetPoints()->End(); ++it)
   {
     const auto & p = it.Value();
-    points->InsertNextPoint(p[0], p[1], D > 2 ? p[D > 2 ? 2 : 0] : 0.0);
+    points->InsertNextPoint(p[0], p[1], p[D - 1] * (D > 2 ? 1.0 : 0.0)); // z = 0 in 2D
     double flag = 0.0;
     mesh->GetPointData(it.Index(), &flag);
     fixed->InsertNextValue(flag > 0.5 ? 1 : 0);

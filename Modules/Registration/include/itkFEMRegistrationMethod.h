@@ -247,7 +247,6 @@ private:
   SimplexMeshType                      m_StaticSimplexMesh;
   const SimplexMeshType *              m_CurrentMesh{ nullptr };
   typename MeshType::Pointer           m_CurrentItkMesh;
-  const SimplexMeshType *              m_CurrentItkMeshSource{ nullptr };
   size_t                               m_CurrentMeshVersion{ 0 };
   size_t                               m_CurrentItkMeshVersion{ 0 };
 };
