@@ -61,7 +61,7 @@ public:
       for (size_t e = c * chunk; e < end; ++e)
       {
         double inv[D][D], x0[D];
-        Inverse(mesh, e, inv, x0);
+        mesh.EdgeMatrix(e, x0, &inv);
         int64_t lo[D], hi[D];
         for (unsigned int k = 0; k < D; ++k)
         {
@@ -142,7 +142,7 @@ public:
         }
         m_Element[p] = e;
         double inv[D][D], x0[D];
-        Inverse(mesh, e, inv, x0);
+        mesh.EdgeMatrix(e, x0, &inv);
         const auto idx3 = grid.Index(p);
         int64_t    idx[D];
         for (unsigned int k = 0; k < D; ++k)
@@ -245,43 +245,6 @@ public:
   }
 
 private:
-  static void
-  Inverse(const SimplexMesh<D> & mesh, size_t e, double (&inv)[D][D], double (&x0)[D])
-  {
-    double m[D][D];
-    for (unsigned int r = 0; r < D; ++r)
-    {
-      x0[r] = mesh.nodes[mesh.elements[e][0] * D + r];
-      for (unsigned int c = 0; c < D; ++c)
-      {
-        m[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - x0[r];
-      }
-    }
-    if (D == 2)
-    {
-      const double det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-      inv[0][0] = m[1][1] / det;
-      inv[0][1] = -m[0][1] / det;
-      inv[1][0] = -m[1][0] / det;
-      inv[1][1] = m[0][0] / det;
-    }
-    else
-    {
-      const double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
-                         m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-                         m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        for (unsigned int c = 0; c < D; ++c)
-        {
-          // cofactor transpose
-          const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
-          inv[r][c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
-        }
-      }
-    }
-  }
-
   void
   Barycentric(const double (&inv)[D][D], const double (&x0)[D], const int64_t * idx, double * lambda) const
   {

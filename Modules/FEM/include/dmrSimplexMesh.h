@@ -49,27 +49,56 @@ struct SimplexMesh
     return nodes.size() / D;
   }
 
-  /** Signed measure (area/volume) of element e, positive for positive orientation. */
+  /** Edge matrix J = [x_1 - x_0, ..., x_D - x_0] of element e: writes x_0 and, when inv is given and det != 0,
+   * J^-1 (whose rows are the gradients of the barycentric coordinates lambda_1..lambda_D). Returns det J. */
   double
-  SignedMeasure(size_t e) const
+  EdgeMatrix(size_t e, double (&x0)[D], double (*inv)[D][D] = nullptr) const
   {
     double m[D][D];
-    for (unsigned int k = 0; k < D; ++k)
+    for (unsigned int r = 0; r < D; ++r)
     {
-      for (unsigned int r = 0; r < D; ++r)
+      x0[r] = nodes[elements[e][0] * D + r];
+      for (unsigned int c = 0; c < D; ++c)
       {
-        m[r][k] = nodes[elements[e][k + 1] * D + r] - nodes[elements[e][0] * D + r];
+        m[r][c] = nodes[elements[e][c + 1] * D + r] - x0[r];
       }
     }
     double det;
     if (D == 2)
     {
       det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-      return det / 2.0;
+      if (inv && det != 0.0)
+      {
+        (*inv)[0][0] = m[1][1] / det;
+        (*inv)[0][1] = -m[0][1] / det;
+        (*inv)[1][0] = -m[1][0] / det;
+        (*inv)[1][1] = m[0][0] / det;
+      }
+      return det;
     }
     det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
           m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-    return det / 6.0;
+    if (inv && det != 0.0)
+    {
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        for (unsigned int c = 0; c < D; ++c)
+        {
+          // transposed cofactor over det
+          const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
+          (*inv)[r][c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
+        }
+      }
+    }
+    return det;
+  }
+
+  /** Signed measure (area/volume) of element e, positive for positive orientation. */
+  double
+  SignedMeasure(size_t e) const
+  {
+    double x0[D];
+    return EdgeMatrix(e, x0) / (D == 2 ? 2.0 : 6.0);
   }
 
   /** Orient every element positively; throws on a degenerate one. */

@@ -24,41 +24,12 @@ namespace itk
 {
 template <unsigned int D>
 void
-LinearElasticFEMSolver<D>::ElementStiffness(const MeshType & mesh, size_t e, double * Ke) const
+LinearElasticFEMSolver<D>::ElementStiffness(const MeshType & mesh, size_t element, double * Ke) const
 {
   constexpr unsigned int NV = D + 1;
   // gradients of the barycentric shape functions: rows of J^-1 for phi_1..phi_D, phi_0 = -(sum)
-  double J[D][D];
-  for (unsigned int r = 0; r < D; ++r)
-  {
-    for (unsigned int c = 0; c < D; ++c)
-    {
-      J[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - mesh.nodes[mesh.elements[e][0] * D + r];
-    }
-  }
-  double inv[D][D];
-  double det;
-  if (D == 2)
-  {
-    det = J[0][0] * J[1][1] - J[0][1] * J[1][0];
-    inv[0][0] = J[1][1] / det;
-    inv[0][1] = -J[0][1] / det;
-    inv[1][0] = -J[1][0] / det;
-    inv[1][1] = J[0][0] / det;
-  }
-  else
-  {
-    det = J[0][0] * (J[1][1] * J[2][2] - J[1][2] * J[2][1]) - J[0][1] * (J[1][0] * J[2][2] - J[1][2] * J[2][0]) +
-          J[0][2] * (J[1][0] * J[2][1] - J[1][1] * J[2][0]);
-    for (unsigned int r = 0; r < D; ++r)
-    {
-      for (unsigned int c = 0; c < D; ++c)
-      {
-        const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
-        inv[r][c] = (J[r1][c1] * J[r2][c2] - J[r1][c2] * J[r2][c1]) / det;
-      }
-    }
-  }
+  double x0[D], inv[D][D];
+  const double det = mesh.EdgeMatrix(element, x0, &inv);
   const double volume = std::abs(det) / (D == 2 ? 2.0 : 6.0);
   double       g[NV][D];
   for (unsigned int k = 0; k < D; ++k)
