@@ -34,6 +34,39 @@ namespace dmrtools
 {
 using FileMeshType = itk::Mesh<double, 3>;
 
+/** Copies the triangle and tetrahedron cells of in into out (renumbered from 0); with pointsPerCell != 0 only cells
+ * with that many points. */
+template <typename TIn, typename TOut>
+void
+CopySimplexCells(const TIn * in, TOut * out, unsigned int pointsPerCell)
+{
+  using CellType = typename TOut::CellType;
+  typename TOut::CellIdentifier id = 0;
+  for (auto c = in->GetCells()->Begin(); c != in->GetCells()->End(); ++c)
+  {
+    const unsigned int n = c.Value()->GetNumberOfPoints();
+    if ((n != 3 && n != 4) || (pointsPerCell != 0 && n != pointsPerCell))
+    {
+      continue;
+    }
+    typename CellType::CellAutoPointer cell;
+    if (n == 3)
+    {
+      cell.TakeOwnership(new itk::TriangleCell<CellType>);
+    }
+    else
+    {
+      cell.TakeOwnership(new itk::TetrahedronCell<CellType>);
+    }
+    unsigned int k = 0;
+    for (auto p = c.Value()->PointIdsBegin(); p != c.Value()->PointIdsEnd(); ++p, ++k)
+    {
+      cell->SetPointId(k, *p);
+    }
+    out->SetCell(id++, cell);
+  }
+}
+
 /** Writes a 2D or 3D mesh of simplices (points in physical space) as legacy VTK with 3D points. */
 template <typename TMesh>
 void
@@ -51,26 +84,7 @@ WriteMeshFile(const TMesh * mesh, const std::string & path)
     }
     out->SetPoint(it.Index(), p);
   }
-  using CellType = FileMeshType::CellType;
-  FileMeshType::CellIdentifier id = 0;
-  for (auto c = mesh->GetCells()->Begin(); c != mesh->GetCells()->End(); ++c, ++id)
-  {
-    CellType::CellAutoPointer cell;
-    if (c.Value()->GetNumberOfPoints() == 3)
-    {
-      cell.TakeOwnership(new itk::TriangleCell<CellType>);
-    }
-    else
-    {
-      cell.TakeOwnership(new itk::TetrahedronCell<CellType>);
-    }
-    unsigned int k = 0;
-    for (auto p = c.Value()->PointIdsBegin(); p != c.Value()->PointIdsEnd(); ++p, ++k)
-    {
-      cell->SetPointId(k, *p);
-    }
-    out->SetCell(id, cell);
-  }
+  CopySimplexCells(mesh, out.GetPointer(), 0);
   auto writer = itk::MeshFileWriter<FileMeshType>::New();
   writer->SetInput(out);
   writer->SetFileName(path);
@@ -101,30 +115,7 @@ ReadMeshFile(const std::string & path)
     }
     out->SetPoint(it.Index(), p);
   }
-  using CellType = typename TMesh::CellType;
-  typename TMesh::CellIdentifier id = 0;
-  for (auto c = in->GetCells()->Begin(); c != in->GetCells()->End(); ++c)
-  {
-    if (c.Value()->GetNumberOfPoints() != D + 1)
-    {
-      continue;
-    }
-    typename CellType::CellAutoPointer cell;
-    if (D == 2)
-    {
-      cell.TakeOwnership(new itk::TriangleCell<CellType>);
-    }
-    else
-    {
-      cell.TakeOwnership(new itk::TetrahedronCell<CellType>);
-    }
-    unsigned int k = 0;
-    for (auto p = c.Value()->PointIdsBegin(); p != c.Value()->PointIdsEnd(); ++p, ++k)
-    {
-      cell->SetPointId(k, *p);
-    }
-    out->SetCell(id++, cell);
-  }
+  CopySimplexCells(in, out.GetPointer(), D + 1);
   return out;
 }
 } // namespace dmrtools
