@@ -21,11 +21,29 @@
 #include "itkImage.h"
 #include "itkImageRegionConstIterator.h"
 #include "itkMacro.h"
+#include <algorithm>
+#include <utility>
 
 namespace itk
 {
 namespace dmr
 {
+/** Smallest and largest intensity of an image (whole buffer). */
+template <typename TImage>
+std::pair<double, double>
+IntensityRange(const TImage * image)
+{
+  double                           lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
+  ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    const double v = static_cast<double>(it.Get());
+    lo = std::min(lo, v);
+    hi = std::max(hi, v);
+  }
+  return { lo, hi };
+}
+
 /** Dice overlap of the regions {a > threshold} and {b > threshold} of two images of the same size. */
 template <typename TImageA, typename TImageB>
 double

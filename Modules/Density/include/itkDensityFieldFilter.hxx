@@ -25,6 +25,7 @@
 #include "itkImageRegionConstIterator.h"
 #include "itkImageAlgorithm.h"
 #include "itkProgressReporter.h"
+#include "dmrImageMetrics.h"
 #include <numeric>
 
 namespace itk
@@ -255,7 +256,6 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
     return out;
   };
 
-  double lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
   for (unsigned int l = 0; l < m_NumberOfLevels; ++l)
   {
     Level & L = m_Levels[l];
@@ -277,16 +277,9 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
         L.MB[r][c] = inverseDirection[r][c] / m->GetSpacing()[r];
       }
     }
-    if (l == 0)
-    {
-      for (float v : L.moving)
-      {
-        lo = std::min(lo, static_cast<double>(v));
-        hi = std::max(hi, static_cast<double>(v));
-      }
-    }
   }
-  m_IntensityRange = hi - lo;
+  const auto range = dmr::IntensityRange(moving);
+  m_IntensityRange = range.second - range.first;
   m_PyramidTime = inputTime;
   m_PyramidFixed = fixed;
   m_PyramidMoving = moving;

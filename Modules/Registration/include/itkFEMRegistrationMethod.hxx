@@ -21,6 +21,7 @@
 #include "itkFEMRegistrationMethod.h"
 #include "itkImageRegionConstIterator.h"
 #include "dmrCudaBackend.h"
+#include "dmrImageMetrics.h"
 #include <chrono>
 
 namespace itk
@@ -167,25 +168,6 @@ FEMRegistrationMethod<TF, TM, TD>::WriteGridFieldToImage(const std::vector<float
     }
   });
 }
-
-namespace dmr
-{
-/** Intensity range of an image (whole buffer). */
-template <typename TImage>
-std::pair<double, double>
-IntensityRange(const TImage * image)
-{
-  double                           lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
-  ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
-  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
-  {
-    const double v = static_cast<double>(it.Get());
-    lo = std::min(lo, v);
-    hi = std::max(hi, v);
-  }
-  return { lo, hi };
-}
-} // namespace dmr
 
 template <typename TF, typename TM, typename TD>
 void
