@@ -424,3 +424,73 @@ TEST(DensityFieldFilter, SwappingInAnotherImageOfTheSameSizeIsSeen)
   EXPECT_EQ(filter->GetSSD(), 0.0);
 }
 } // namespace
+
+// A fixed mask (issue 3, e.g. the lungs) restricts the force, the density's |f|^2 and the similarity to its inside;
+// alpha is 0.1 x the mean |f|^2 over the inside; an empty mask or one on another grid is refused.
+TEST(DensityFieldFilter, FixedMaskRestrictsForceDensityAndSimilarity)
+{
+  const ImageType::SizeType size{ { 40, 32 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  using MaskType = FilterType::MaskImageType;
+  auto mask = MaskType::New();
+  mask->CopyInformation(fixed);
+  mask->SetRegions(fixed->GetLargestPossibleRegion());
+  mask->Allocate();
+  const size_t n = size[0] * size[1];
+  size_t       inside = 0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    const bool in = (p % size[0]) < 20; // left half (holds most of the blobs' overlap)
+    mask->GetBufferPointer()[p] = in ? 1 : 0;
+    inside += in;
+  }
+  auto unmasked = FilterType::New();
+  unmasked->SetFixedImage(fixed);
+  unmasked->SetMovingImage(moving);
+  unmasked->SetNumberOfLevels(1);
+  unmasked->Update();
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixed);
+  filter->SetMovingImage(moving);
+  filter->SetNumberOfLevels(1);
+  filter->SetFixedMask(mask);
+  filter->Update();
+  const auto * density = filter->GetOutput()->GetBufferPointer();
+  const auto * force = filter->GetForceField()->GetBufferPointer();
+  const auto * freeForce = unmasked->GetForceField()->GetBufferPointer();
+  double       meanF2 = 0.0, ssd = 0.0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    if (mask->GetBufferPointer()[p])
+    {
+      ASSERT_NEAR((force[p] - freeForce[p]).GetNorm(), 0.0, 1e-5 * (1.0 + freeForce[p].GetNorm())) << p;
+      const double f2 = force[p].GetSquaredNorm();
+      meanF2 += f2 / static_cast<double>(inside);
+      ASSERT_NEAR(density[p], f2 + filter->GetAlpha(), 1e-5 * (f2 + filter->GetAlpha())) << p;
+      const double r = fixed->GetBufferPointer()[p] - moving->GetBufferPointer()[p];
+      ssd += r * r;
+    }
+    else
+    {
+      ASSERT_EQ(force[p].GetNorm(), 0.0) << p;
+      ASSERT_FLOAT_EQ(density[p], static_cast<float>(filter->GetAlpha())) << p;
+    }
+  }
+  EXPECT_GT(meanF2, 0.0);
+  EXPECT_NEAR(filter->GetMeanSquaredForce(), meanF2, 1e-5 * meanF2);
+  EXPECT_NEAR(filter->GetAlpha(), 0.1 * meanF2, 1e-5 * meanF2);
+  EXPECT_NEAR(filter->GetSSD(), ssd, 1e-5 * ssd);
+  EXPECT_LT(filter->GetSSD(), unmasked->GetSSD());
+
+  mask->FillBuffer(0);
+  mask->Modified();
+  EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  auto small = MaskType::New();
+  small->SetRegions(MaskType::SizeType{ { 10, 10 } });
+  small->Allocate();
+  small->FillBuffer(1);
+  filter->SetFixedMask(small);
+  EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+}

@@ -83,6 +83,11 @@ public:
   /** Optional: current displacement field on the fixed grid (identity when absent). */
   itkSetInputMacro(DisplacementField, DisplacementFieldType);
   itkGetInputMacro(DisplacementField, DisplacementFieldType);
+  /** Optional: a mask on the fixed grid (same size; non-zero = inside). Outside it the force is 0, the density is
+   * alpha alone (few nodes), and SSD, MSSD and the mean |f|^2 that sets alpha are taken over the mask only
+   * (e.g. the lungs of a thoracic CT). */
+  itkSetInputMacro(FixedMask, MaskImageType);
+  itkGetInputMacro(FixedMask, MaskImageType);
 
   /** Number of pyramid levels summed in the MSSD (paper 5.1: 3). */
   itkSetClampMacro(NumberOfLevels, unsigned int, 1, 8);

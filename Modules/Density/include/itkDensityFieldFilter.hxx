@@ -36,6 +36,7 @@ DensityFieldFilter<TF, TM, TD, TO>::DensityFieldFilter()
   this->SetPrimaryInputName("FixedImage");
   this->AddRequiredInputName("MovingImage");
   this->AddOptionalInputName("DisplacementField");
+  this->AddOptionalInputName("FixedMask");
   this->SetNumberOfRequiredOutputs(2);
   this->SetNthOutput(0, this->MakeOutput(0));
   this->SetNthOutput(1, this->MakeOutput(1));
@@ -79,6 +80,13 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyPreconditions() ITKv5_CONST
   {
     itkExceptionMacro("the displacement field must lie on the fixed image grid: its size "
                       << field->GetLargestPossibleRegion().GetSize() << " differs from the fixed image size "
+                      << fixedSize);
+  }
+  const MaskImageType * mask = this->GetFixedMask();
+  if (mask != nullptr && mask->GetLargestPossibleRegion().GetSize() != fixedSize)
+  {
+    itkExceptionMacro("the fixed mask must lie on the fixed image grid: its size "
+                      << mask->GetLargestPossibleRegion().GetSize() << " differs from the fixed image size "
                       << fixedSize);
   }
 }
@@ -310,6 +318,8 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   m_GridForce.resize(n * D);
 
   const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
+  const MaskImageType * maskImage = this->GetFixedMask();
+  const auto *          maskBuffer = maskImage ? maskImage->GetBufferPointer() : nullptr;
   auto *       densityBuffer = density->GetBufferPointer();
   auto *       forceBuffer = force->GetBufferPointer();
   float *      gridForce = m_GridForce.data();
@@ -327,6 +337,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   struct Partial
   {
     double mssd{ 0 }, ssd{ 0 }, f2{ 0 };
+    size_t inside{ 0 };
   };
   const size_t          chunk = std::max<size_t>(4096, n / 64 + 1);
   const size_t          nChunks = (n + chunk - 1) / chunk;
@@ -341,6 +352,17 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
         const size_t pEnd = std::min(n, (c + 1) * chunk);
         for (size_t p = c * chunk; p < pEnd; ++p)
         {
+          if (maskBuffer && maskBuffer[p] == 0)
+          {
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              gridForce[p * D + k] = 0.0f;
+              forceBuffer[p][k] = 0;
+            }
+            densityBuffer[p] = 0;
+            continue;
+          }
+          ++acc.inside;
           const auto idx = grid.Index(p);
           double     u[D] = {};
           if (fieldBuffer)
@@ -414,10 +436,15 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
     total.mssd += p.mssd;
     total.ssd += p.ssd;
     total.f2 += p.f2;
+    total.inside += p.inside;
+  }
+  if (total.inside == 0)
+  {
+    itkExceptionMacro("the fixed mask is empty: no pixel to register");
   }
   m_MSSD = total.mssd;
   m_SSD = total.ssd;
-  m_MeanSquaredForce = total.f2 / static_cast<double>(n);
+  m_MeanSquaredForce = total.f2 / static_cast<double>(total.inside);
   if (!m_UseFixedAlpha)
   {
     // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the

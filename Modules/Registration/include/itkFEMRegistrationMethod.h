@@ -45,7 +45,8 @@ namespace itk
  *     beta = f^T K^-1 f / (2 EnergyRatio D);
  *  5. the nodal update is interpolated to the pixels and applied by the diffeomorphic rule W <- W o exp(u) (Eq. 8),
  *     exp by scaling and squaring.
- * Inputs: FixedImage, MovingImage (any grid: sampled through physical space), optional StaticMesh (physical
+ * Inputs: FixedImage, MovingImage (any grid: sampled through physical space), optional FixedMask (region of
+ * interest on the fixed grid), optional StaticMesh (physical
  * itk::Mesh of triangles for MeshMode Static). Output 0: the transform (DisplacementFieldTransform, decorated),
  * output 1: its displacement field on the fixed grid in mm (ITK convention: moving point = fixed point + u).
  * Fires IterationEvent after every iteration (GetCurrentIteration, GetCurrentMesh, GetHistory are valid then) and
@@ -116,6 +117,11 @@ public:
   itkGetInputMacro(MovingImage, MovingImageType);
   itkSetInputMacro(StaticMesh, MeshType);
   itkGetInputMacro(StaticMesh, MeshType);
+  /** Optional region of interest on the fixed grid (e.g. the lungs): forces and density only inside it
+   * (see DensityFieldFilter::SetFixedMask). */
+  using MaskImageType = typename DensityFilterType::MaskImageType;
+  itkSetInputMacro(FixedMask, MaskImageType);
+  itkGetInputMacro(FixedMask, MaskImageType);
 
   itkSetClampMacro(NumberOfIterations, unsigned int, 1, NumericTraits<unsigned int>::max());
   itkGetConstMacro(NumberOfIterations, unsigned int);

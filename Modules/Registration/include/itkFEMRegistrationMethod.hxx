@@ -32,6 +32,7 @@ FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
   this->SetPrimaryInputName("FixedImage");
   this->AddRequiredInputName("MovingImage");
   this->AddOptionalInputName("StaticMesh");
+  this->AddOptionalInputName("FixedMask");
   this->SetNumberOfRequiredOutputs(2);
   this->SetNthOutput(0, this->MakeOutput(0));
   this->SetNthOutput(1, this->MakeOutput(1));
@@ -205,6 +206,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_DensityFilter->SetFixedImage(fixed);
   m_DensityFilter->SetMovingImage(moving);
   m_DensityFilter->SetDisplacementField(field);
+  m_DensityFilter->SetFixedMask(this->GetFixedMask());
   m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
   m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
   m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
