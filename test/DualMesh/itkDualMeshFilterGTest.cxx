@@ -252,11 +252,11 @@ TEST(DualMeshFilter, BadLabelsThrow)
 
   using Label3DType = itk::Image<int32_t, 3>;
   auto labels3D = Label3DType::New();
-  labels3D->SetRegions(Label3DType::SizeType{ { 4, 4, 4 } });
+  labels3D->SetRegions(Label3DType::SizeType{ { 4, 4, 1 } });
   labels3D->Allocate(true);
   auto filter3D = itk::DualMeshFilter<Label3DType>::New();
   filter3D->SetInput(labels3D);
-  EXPECT_THROW(filter3D->Update(), itk::ExceptionObject); // 3D is not part of this version
+  EXPECT_THROW(filter3D->Update(), itk::ExceptionObject); // a flat 3D image has no volume to tetrahedralize
 }
 /** Nodes on the box border, checked for exact placement and for sliver elements. */
 ::testing::AssertionResult

@@ -33,14 +33,33 @@ namespace itk
  *
  * Nodes (paper 4.6): an inner cell's node is its site; a boundary cell (one that has pixels on the image border)
  * gets its node at the centre of its border pixels on the side where it has most of them; a corner cell (one that
- * holds an image corner pixel) gets its node exactly at the corner. Corners are always nodes. Edges: adjacent inner
- * cells are joined by constrained edges (skipped when one would cross an edge already constrained), and all nodes
- * are triangulated by CGAL's constrained Delaunay triangulation, which re-triangulates the boundary band. Because
- * every corner and boundary node lies on the image box, the mesh covers the box spanned by the pixel centres
- * exactly, with no inverted or zero-area triangle (checked: element measures sum to the box measure).
+ * holds an image corner pixel) gets its node exactly at the corner. Corners are always nodes (a cell holding several
+ * corners adds the further ones as extra nodes). Nodes at the same position are merged.
  *
- * Output: an itk::Mesh in physical space with TriangleCells (2D); point data 1 marks nodes on the image border,
- * which the FEM stage fixes. 3D (tetrahedra through TetGen) is not part of this version.
+ * 2D: adjacent inner cells are joined by constrained edges (skipped when one would cross an edge already
+ * constrained), and all nodes are triangulated by CGAL's constrained Delaunay triangulation, which re-triangulates
+ * the boundary band.
+ *
+ * 3D: the box border has 8 corners, 12 edge lines and 6 faces, and a cell's node goes onto the lowest-dimensional
+ * of them it touches: a cell holding a corner voxel at that corner; else (SnapToBoxEdges, the default) a cell with
+ * voxels on an edge line at the centre of its voxels on the edge line where it has most of them, the two other
+ * coordinates exactly on the edge; else a cell with face voxels at the centre of its voxels on the face where it has
+ * most, exactly on that face plane; else the site. Edge snapping spreads nodes along the 12 box edges instead of
+ * leaving long corner-to-corner hull edges with thin tetrahedra along them. All nodes are tetrahedralized by
+ * TetGen's Delaunay tetrahedralization without constraints (TetGen 1.5 cannot take free inner segments as
+ * constraints without Steiner points; the Delaunay tetrahedralization of the sites is the dual of their Voronoi
+ * diagram and so holds most of the CVT adjacency: GetNumberOfMissingAdjacencyEdges() says how much it misses).
+ * A tetrahedron flatter than dmr::DefaultMinimumTetrahedronShape (6 sqrt(2) V / L^3 < 1e-6, which only a
+ * near-degenerate node set gives, e.g. a symmetric CVT with rounded centroids) is removed by nudging its non-corner
+ * nodes (inner ones freely, face nodes within their face, edge nodes along their edge) by a deterministic step of
+ * at most a quarter voxel and tetrahedralizing again; no Steiner point is added, so nodes stay one per cell plus the
+ * extra corners. GetNumberOfPerturbedNodes() counts the nodes moved (0 for generic input).
+ *
+ * Because every corner and boundary node lies on the image box, the mesh covers the box spanned by the pixel centres
+ * exactly, with no inverted or zero-measure element (checked: element measures sum to the box measure).
+ *
+ * Output: an itk::Mesh in physical space with TriangleCells (2D) or TetrahedronCells (3D); point data 1 marks nodes
+ * on the image border, which the FEM stage fixes.
  *
  * \par References
  * Y. Cai, X. Guo, Z. Zhong, W. Mao, "Dynamic meshing for deformable image registration", Computer-Aided Design 58
@@ -87,9 +106,23 @@ public:
   {
     return m_SimplexMesh;
   }
-  /** Inner-cell adjacency edges that could not be constrained (they crossed an earlier one). */
+  /** 3D only: put the node of a cell that touches a box edge line (but no corner) onto that edge (default on);
+   * off, such a cell is treated like any other boundary cell (its face with most voxels), unless it has no voxel
+   * inside a face. On a CVT, edge snapping gives better tetrahedra next to the box edges. */
+  itkSetMacro(SnapToBoxEdges, bool);
+  itkGetConstMacro(SnapToBoxEdges, bool);
+  itkBooleanMacro(SnapToBoxEdges);
+
+  /** 2D: inner-cell adjacency edges that could not be constrained (they crossed an earlier one). 3D: 0 (nothing is
+   * constrained). */
   itkGetConstMacro(NumberOfSkippedConstraints, SizeValueType);
   itkGetConstMacro(NumberOfBoundaryNodes, SizeValueType);
+  /** Pairs of adjacent inner cells (sharing a pixel edge / voxel face) in the label image. */
+  itkGetConstMacro(NumberOfInnerAdjacencyEdges, SizeValueType);
+  /** Of those, the pairs whose nodes are not joined by a mesh edge. */
+  itkGetConstMacro(NumberOfMissingAdjacencyEdges, SizeValueType);
+  /** 3D: nodes moved off near-flat tetrahedra (see the class comment); 0 in 2D. */
+  itkGetConstMacro(NumberOfPerturbedNodes, SizeValueType);
 
 protected:
   DualMeshFilter();
@@ -105,9 +138,24 @@ protected:
   GenerateData() override;
 
 private:
+  void
+  GenerateData2D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
+  void
+  GenerateData3D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
+  /** Compacts the used nodes, orients the elements, marks the border nodes, checks that the elements tile the box
+   * and grafts the physical-space mesh onto the output. */
+  void
+  BuildOutputMesh(const dmr::Grid<ImageDimension> &                            grid,
+                  const std::vector<double> &                                  nodes,
+                  const std::vector<std::array<int32_t, ImageDimension + 1>> & elements);
+
   SimplexMeshType m_SimplexMesh;
+  bool            m_SnapToBoxEdges{ true };
   SizeValueType   m_NumberOfSkippedConstraints{ 0 };
   SizeValueType   m_NumberOfBoundaryNodes{ 0 };
+  SizeValueType   m_NumberOfInnerAdjacencyEdges{ 0 };
+  SizeValueType   m_NumberOfMissingAdjacencyEdges{ 0 };
+  SizeValueType   m_NumberOfPerturbedNodes{ 0 };
 };
 } // namespace itk
 

@@ -1,0 +1,79 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrDelaunay3D_h
+#define dmrDelaunay3D_h
+
+#include "DynamicMeshRegistrationExport.h"
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+namespace itk
+{
+namespace dmr
+{
+/** Delaunay tetrahedralization (TetGen 1.5, exact predicates) of 3D nodes (x, y, z interleaved). It fills the convex
+ * hull of the nodes. Nodes at the same position are merged: tetrahedra refer to the first node at a position. Every
+ * tetrahedron is positively oriented (det [x1 - x0, x2 - x0, x3 - x0] > 0 in exact arithmetic); TetGen never outputs
+ * a tetrahedron of exactly zero volume, but near-coplanar nodes can give near-flat ones (see NonDegenerateDelaunay3D).
+ * The result depends only on the input (TetGen's point-order randomisation uses a fixed seed).
+ * Fewer than 4 distinct nodes, or all of them within 1e-12 of their extent from one plane, give no tetrahedra
+ * (TetGen 1.5 crashes on a coplanar set). Throws an itk::ExceptionObject when TetGen fails. Returns the number of
+ * nodes merged into an earlier one. (TetGen stays out of every public header: this file is its only interface.)
+ *
+ * Why no constraints: the 2D dual mesh inserts the inner-cell adjacency edges as constraints of a CGAL constrained
+ * Delaunay triangulation (paper 4.6). TetGen 1.5 takes constraints only as a piecewise linear complex of facets
+ * and segments, and adjacency edges between inner sites are neither (recovering a free segment needs Steiner
+ * points). The unconstrained Delaunay tetrahedralization of the nodes is the dual of the Voronoi diagram of the
+ * sites, so it holds most of the discrete CVT's adjacency edges anyway; DualMeshFilter reports how many it misses. */
+DynamicMeshRegistration_EXPORT size_t
+Delaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra);
+
+/** Threshold of NonDegenerateDelaunay3D as DualMeshFilter uses it: a tetrahedron with shape below 1e-6 counts as flat.
+ * Its four nodes are then coplanar to within a millionth of its size: its volume is still far above double round-off
+ * (about 1e-14 relative for images up to a few thousand voxels across), but its FEM stiffness would scale as 1/shape.
+ */
+constexpr double DefaultMinimumTetrahedronShape = 1e-6;
+
+/** Shape measure of a tetrahedron: 6 sqrt(2) V / L^3 with V its signed volume and L its longest edge; 1 for the
+ * regular tetrahedron, 0 for a flat one, negative for a negatively oriented one. Scale invariant. */
+DynamicMeshRegistration_EXPORT double
+TetrahedronShape(const double * a, const double * b, const double * c, const double * d);
+
+/** Delaunay3D without near-flat tetrahedra. Near-flat Delaunay tetrahedra come from near-degenerate node sets (four
+ * nodes nearly coplanar and cocircular, e.g. a symmetric CVT whose centroids were rounded); exactly coplanar nodes
+ * (such as nodes snapped onto one box face) never form one. Each round, every node of a tetrahedron with shape below
+ * minimumShape is moved by a small deterministic pseudo-random step (a hash of node and round, no global random
+ * state) along the axes it may move on (bit k of freeAxes[i]: axis k; 0 pins a node, e.g. a box corner), and the
+ * nodes are tetrahedralized again. Each time a node is moved it is put at a fresh offset from its input position:
+ * 1% of that tetrahedron's longest edge along its largest axis, doubling each round, never more than maximumStep.
+ * No node is added (no Steiner points). xyz is updated in place; returns the number of nodes that ended up off their
+ * input position (0 for generic input, which is then exactly Delaunay3D). Throws an itk::ExceptionObject when a flat
+ * tetrahedron remains after maximumRounds rounds or consists of pinned nodes only. */
+DynamicMeshRegistration_EXPORT size_t
+NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
+                        const std::vector<uint8_t> &          freeAxes,
+                        double                                maximumStep,
+                        std::vector<std::array<int32_t, 4>> & tetrahedra,
+                        double                                minimumShape,
+                        unsigned int                          maximumRounds);
+} // namespace dmr
+} // namespace itk
+
+#endif

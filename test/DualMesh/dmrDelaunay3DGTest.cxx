@@ -1,0 +1,311 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "dmrDelaunay3D.h"
+#include "itkMacro.h"
+#include "gtest/gtest.h"
+
+#include <cmath>
+#include <random>
+
+namespace
+{
+using Tetrahedra = std::vector<std::array<int32_t, 4>>;
+constexpr double       flatShape = itk::dmr::DefaultMinimumTetrahedronShape;
+constexpr unsigned int rounds = 12;
+
+double
+Volume(const std::vector<double> & xyz, const std::array<int32_t, 4> & t)
+{
+  double m[3][3];
+  for (unsigned int r = 0; r < 3; ++r)
+  {
+    for (unsigned int c = 0; c < 3; ++c)
+    {
+      m[r][c] = xyz[3 * t[c + 1] + r] - xyz[3 * t[0] + r];
+    }
+  }
+  return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+          m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])) /
+         6.0;
+}
+
+/** Box [0,a] x [0,b] x [0,c] corners followed by random inner points. */
+std::vector<double>
+BoxWithInnerPoints(double a, double b, double c, size_t inner, uint32_t seed)
+{
+  std::vector<double> xyz;
+  for (unsigned int corner = 0; corner < 8; ++corner)
+  {
+    xyz.push_back(corner & 1u ? a : 0.0);
+    xyz.push_back(corner & 2u ? b : 0.0);
+    xyz.push_back(corner & 4u ? c : 0.0);
+  }
+  std::mt19937                           rng(seed);
+  std::uniform_real_distribution<double> u(0.05, 0.95);
+  for (size_t i = 0; i < inner; ++i)
+  {
+    xyz.push_back(a * u(rng));
+    xyz.push_back(b * u(rng));
+    xyz.push_back(c * u(rng));
+  }
+  return xyz;
+}
+
+/** 10 x 10 x 10 lattice (step 1, inside [0, 11]^3) with each coordinate off by up to 'noise', plus the 8 corners of
+ * [0, 11]^3: for tiny noise the Delaunay tetrahedralization is full of near-flat tetrahedra. */
+std::vector<double>
+NoisyLattice(double noise)
+{
+  std::vector<double>                    xyz = BoxWithInnerPoints(11.0, 11.0, 11.0, 0, 1);
+  std::mt19937                           rng(7);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int i = 0; i < 10; ++i)
+  {
+    for (int j = 0; j < 10; ++j)
+    {
+      for (int k = 0; k < 10; ++k)
+      {
+        xyz.push_back(1.0 + k + noise * u(rng));
+        xyz.push_back(1.0 + j + noise * u(rng));
+        xyz.push_back(1.0 + i + noise * u(rng));
+      }
+    }
+  }
+  return xyz;
+}
+
+size_t
+CountFlat(const std::vector<double> & xyz, const Tetrahedra & tetrahedra)
+{
+  size_t flat = 0;
+  for (const auto & t : tetrahedra)
+  {
+    flat += itk::dmr::TetrahedronShape(&xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]]) <
+                itk::dmr::DefaultMinimumTetrahedronShape
+              ? 1
+              : 0;
+  }
+  return flat;
+}
+
+TEST(Delaunay3D, FillsTheConvexHullWithPositiveTetrahedra)
+{
+  const auto xyz = BoxWithInnerPoints(3.0, 4.5, 7.5, 300, 11);
+  Tetrahedra tetrahedra;
+  EXPECT_EQ(itk::dmr::Delaunay3D(xyz, tetrahedra), 0u);
+  ASSERT_GT(tetrahedra.size(), 300u);
+  double total = 0.0;
+  for (const auto & t : tetrahedra)
+  {
+    const double v = Volume(xyz, t);
+    EXPECT_GT(v, 0.0);
+    total += v;
+  }
+  EXPECT_NEAR(total, 3.0 * 4.5 * 7.5, 1e-9);
+}
+
+TEST(Delaunay3D, IsEmptyCircumsphere)
+{
+  // the defining property: no node lies strictly inside a tetrahedron's circumsphere
+  const auto xyz = BoxWithInnerPoints(2.0, 3.0, 5.0, 80, 3);
+  Tetrahedra tetrahedra;
+  itk::dmr::Delaunay3D(xyz, tetrahedra);
+  for (const auto & t : tetrahedra)
+  {
+    // circumcentre c solves 2 (p_i - p_0) . c = |p_i|^2 - |p_0|^2
+    double m[3][3], rhs[3];
+    for (unsigned int r = 0; r < 3; ++r)
+    {
+      rhs[r] = 0.0;
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        m[r][k] = 2.0 * (xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k]);
+        rhs[r] += xyz[3 * t[r + 1] + k] * xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k] * xyz[3 * t[0] + k];
+      }
+    }
+    const double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
+                       m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+                       m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    double centre[3];
+    for (unsigned int c = 0; c < 3; ++c)
+    {
+      double mc[3][3];
+      for (unsigned int r = 0; r < 3; ++r)
+      {
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          mc[r][k] = k == c ? rhs[r] : m[r][k];
+        }
+      }
+      centre[c] = (mc[0][0] * (mc[1][1] * mc[2][2] - mc[1][2] * mc[2][1]) -
+                   mc[0][1] * (mc[1][0] * mc[2][2] - mc[1][2] * mc[2][0]) +
+                   mc[0][2] * (mc[1][0] * mc[2][1] - mc[1][1] * mc[2][0])) /
+                  det;
+    }
+    auto distance2 = [&](size_t i)
+    {
+      double s = 0.0;
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        s += (xyz[3 * i + k] - centre[k]) * (xyz[3 * i + k] - centre[k]);
+      }
+      return s;
+    };
+    const double radius2 = distance2(static_cast<size_t>(t[0]));
+    for (size_t i = 0; i < xyz.size() / 3; ++i)
+    {
+      EXPECT_GE(distance2(i), radius2 * (1.0 - 1e-9)) << "node " << i << " inside a circumsphere";
+    }
+  }
+}
+
+TEST(Delaunay3D, MergesNodesAtTheSamePosition)
+{
+  auto         xyz = BoxWithInnerPoints(1.0, 1.0, 1.0, 20, 5);
+  const size_t n = xyz.size() / 3;
+  // node n repeats node 9, node n + 1 repeats corner 0
+  xyz.insert(xyz.end(), &xyz[27], &xyz[30]);
+  xyz.insert(xyz.end(), { 0.0, 0.0, 0.0 });
+  Tetrahedra tetrahedra;
+  EXPECT_EQ(itk::dmr::Delaunay3D(xyz, tetrahedra), 2u);
+  bool uses9 = false;
+  for (const auto & t : tetrahedra)
+  {
+    for (int32_t v : t)
+    {
+      EXPECT_LT(static_cast<size_t>(v), n) << "a tetrahedron refers to a merged node";
+      uses9 = uses9 || v == 9;
+    }
+  }
+  EXPECT_TRUE(uses9);
+}
+
+TEST(Delaunay3D, DegenerateNodeSetsGiveNoTetrahedra)
+{
+  Tetrahedra tetrahedra;
+  EXPECT_EQ(itk::dmr::Delaunay3D({}, tetrahedra), 0u);
+  EXPECT_TRUE(tetrahedra.empty());
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 0, 0, 0, 1, 0, 0, 0, 1, 0 }, tetrahedra), 0u);
+  EXPECT_TRUE(tetrahedra.empty());
+  // coplanar (TetGen 1.5 itself would crash): in a tilted plane and in an axis plane
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 1, 0, 0, 0, 1, 0, 0, 0, 1, 0.5, 0.5, 0, 0.2, 0.3, 0.5 }, tetrahedra), 0u);
+  EXPECT_TRUE(tetrahedra.empty());
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 0, 0, 2, 1, 0, 2, 0, 1, 2, 1, 1, 2 }, tetrahedra), 0u);
+  EXPECT_TRUE(tetrahedra.empty());
+  // collinear, and the same point four times
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3 }, tetrahedra), 0u);
+  EXPECT_TRUE(tetrahedra.empty());
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 1, 2, 3, 1, 2, 3, 1, 2, 3, 1, 2, 3 }, tetrahedra), 3u);
+  EXPECT_TRUE(tetrahedra.empty());
+  // but a single tetrahedron is fine
+  EXPECT_EQ(itk::dmr::Delaunay3D({ 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1 }, tetrahedra), 0u);
+  EXPECT_EQ(tetrahedra.size(), 1u);
+}
+
+TEST(Delaunay3D, TetrahedronShape)
+{
+  const double a[3] = { 1, 1, 1 }, b[3] = { 1, -1, -1 }, c[3] = { -1, 1, -1 }, d[3] = { -1, -1, 1 };
+  const double regular = itk::dmr::TetrahedronShape(a, b, c, d);
+  EXPECT_NEAR(std::abs(regular), 1.0, 1e-12);
+  EXPECT_NEAR(itk::dmr::TetrahedronShape(b, a, c, d), -regular, 1e-12);
+  const double p[3] = { 0, 0, 0 }, q[3] = { 1, 0, 0 }, r[3] = { 0, 1, 0 }, s[3] = { 1, 1, 0 };
+  EXPECT_EQ(itk::dmr::TetrahedronShape(p, q, r, s), 0.0);
+  EXPECT_EQ(itk::dmr::TetrahedronShape(p, p, p, p), 0.0);
+}
+
+TEST(Delaunay3D, NearDegenerateNodesGiveFlatTetrahedra)
+{
+  // why NonDegenerateDelaunay3D exists: round-off sized noise on a lattice
+  const auto xyz = NoisyLattice(1e-13);
+  Tetrahedra tetrahedra;
+  itk::dmr::Delaunay3D(xyz, tetrahedra);
+  EXPECT_GT(CountFlat(xyz, tetrahedra), 100u);
+  // an exact lattice is degenerate too, but exactly: TetGen's exact predicates give no flat tetrahedron
+  const auto exact = NoisyLattice(0.0);
+  itk::dmr::Delaunay3D(exact, tetrahedra);
+  EXPECT_EQ(CountFlat(exact, tetrahedra), 0u);
+}
+
+TEST(Delaunay3D, NudgingRemovesFlatTetrahedraAndKeepsPinnedNodes)
+{
+  const auto           original = NoisyLattice(1e-13);
+  const size_t         n = original.size() / 3;
+  std::vector<uint8_t> freeAxes(n, 7u);
+  std::fill(freeAxes.begin(), freeAxes.begin() + 8, uint8_t{ 0 }); // corners pinned
+  for (size_t i = 8; i < n; i += 5)
+  {
+    freeAxes[i] = 1u; // some nodes may move along x only
+  }
+  auto       xyz = original;
+  Tetrahedra tetrahedra;
+  const auto moved = itk::dmr::NonDegenerateDelaunay3D(xyz, freeAxes, 0.05, tetrahedra, flatShape, rounds);
+  EXPECT_GT(moved, 0u);
+  EXPECT_EQ(CountFlat(xyz, tetrahedra), 0u);
+  double total = 0.0;
+  for (const auto & t : tetrahedra)
+  {
+    total += Volume(xyz, t);
+  }
+  EXPECT_NEAR(total, 11.0 * 11.0 * 11.0, 1e-9);
+  size_t changed = 0;
+  for (size_t i = 0; i < n; ++i)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      const double shift = xyz[3 * i + k] - original[3 * i + k];
+      if ((freeAxes[i] >> k & 1u) == 0)
+      {
+        EXPECT_EQ(shift, 0.0) << "node " << i << " moved along pinned axis " << k;
+      }
+      EXPECT_LE(std::abs(shift), 0.05 + 1e-12) << "node " << i; // at most maximumStep in all
+    }
+    changed += std::equal(&xyz[3 * i], &xyz[3 * i] + 3, &original[3 * i]) ? 0 : 1;
+  }
+  EXPECT_EQ(changed, moved);
+  // deterministic
+  auto       again = original;
+  Tetrahedra tetrahedraAgain;
+  EXPECT_EQ(itk::dmr::NonDegenerateDelaunay3D(again, freeAxes, 0.05, tetrahedraAgain, flatShape, rounds), moved);
+  EXPECT_EQ(again, xyz);
+  EXPECT_EQ(tetrahedraAgain, tetrahedra);
+}
+
+TEST(Delaunay3D, NudgingLeavesGenericInputAlone)
+{
+  const auto           original = BoxWithInnerPoints(3.0, 4.0, 5.0, 200, 9);
+  auto                 xyz = original;
+  std::vector<uint8_t> freeAxes(xyz.size() / 3, 7u);
+  Tetrahedra           nudged, plain;
+  EXPECT_EQ(itk::dmr::NonDegenerateDelaunay3D(xyz, freeAxes, 0.1, nudged, flatShape, rounds), 0u);
+  EXPECT_EQ(xyz, original);
+  itk::dmr::Delaunay3D(original, plain);
+  EXPECT_EQ(nudged, plain);
+}
+
+TEST(Delaunay3D, NudgingThrowsWhenNothingMayMove)
+{
+  auto                 xyz = NoisyLattice(1e-13);
+  std::vector<uint8_t> freeAxes(xyz.size() / 3, 0u);
+  Tetrahedra           tetrahedra;
+  EXPECT_THROW(itk::dmr::NonDegenerateDelaunay3D(xyz, freeAxes, 0.05, tetrahedra, flatShape, rounds),
+               itk::ExceptionObject);
+  std::vector<uint8_t> wrongSize(3, 7u);
+  EXPECT_THROW(itk::dmr::NonDegenerateDelaunay3D(xyz, wrongSize, 0.05, tetrahedra, flatShape, rounds),
+               itk::ExceptionObject);
+}
+} // namespace
