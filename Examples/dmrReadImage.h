@@ -1,0 +1,82 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrReadImage_h
+#define dmrReadImage_h
+
+// Reading a 3D scan for the command-line tools: an image file (NIfTI, MetaImage, ...) or a directory holding one
+// DICOM series. The series is read with GDCM's file-name generator, which orders the slices by their position along
+// the slice normal (Image Position (Patient)), never by file name; ITK's series reader then takes the spacing along
+// the normal from the slice positions and the direction from Image Orientation (Patient). Physical space is ITK's
+// LPS patient frame.
+#include "itkGDCMImageIO.h"
+#include "itkGDCMSeriesFileNames.h"
+#include "itkImageFileReader.h"
+#include "itkImageSeriesReader.h"
+#include "itkMacro.h"
+#include "itksys/SystemTools.hxx"
+#include <string>
+#include <vector>
+
+namespace dmrtools
+{
+/** Slice files of the first DICOM series in directory, ordered by position; throws when there is none. */
+inline std::vector<std::string>
+DicomSeriesFileNames(const std::string & directory)
+{
+  auto names = itk::GDCMSeriesFileNames::New();
+  names->SetUseSeriesDetails(true);
+  names->SetDirectory(directory);
+  const auto uids = names->GetSeriesUIDs();
+  if (uids.empty())
+  {
+    itkGenericExceptionMacro(<< "directory holds no DICOM series: " << directory);
+  }
+  auto files = names->GetFileNames(uids.front());
+  if (files.empty())
+  {
+    itkGenericExceptionMacro(<< "DICOM series without files in " << directory);
+  }
+  return files;
+}
+
+/** The image at path: a DICOM series when path is a directory, otherwise any file ITK can read. Throws
+ * itk::ExceptionObject on failure (missing path, unknown format, empty directory). */
+template<typename TImage>
+typename TImage::Pointer
+ReadImageOrDicomSeries(const std::string & path)
+{
+  if (!itksys::SystemTools::FileExists(path))
+  {
+    itkGenericExceptionMacro(<< "no such file or directory: " << path);
+  }
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    auto reader = itk::ImageSeriesReader<TImage>::New();
+    reader->SetImageIO(itk::GDCMImageIO::New());
+    reader->SetFileNames(DicomSeriesFileNames(path));
+    reader->Update();
+    return reader->GetOutput();
+  }
+  auto reader = itk::ImageFileReader<TImage>::New();
+  reader->SetFileName(path);
+  reader->Update();
+  return reader->GetOutput();
+}
+} // namespace dmrtools
+
+#endif

@@ -1,0 +1,141 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// The real thoracic CT (shared data, thorax-ct-dicom): DICOM series geometry and the lung mask. Skipped when the
+// shared data folder is absent.
+#include "dmrReadImage.h"
+#include "dmrLungMask.h"
+#include "dmrBreathingDeformation.h"
+#include "dmrDataTestHelpers.h"
+#include "itkGDCMImageIO.h"
+#include "itkGDCMSeriesFileNames.h"
+#include "itkImageFileReader.h"
+#include "itkImageFileWriter.h"
+#include "itkImageSeriesReader.h"
+#include "gtest/gtest.h"
+
+namespace
+{
+using CTImageType = itk::Image<short, 3>;
+
+std::string
+ThoraxFolder()
+{
+  return dmrtest::SharedDataFolder("thorax-ct-dicom");
+}
+} // namespace
+
+TEST(ThoraxCT, DicomSeriesGeometryMatchesItsNiftiConversion)
+{
+  const std::string dir = ThoraxFolder();
+  if (dir.empty())
+  {
+    GTEST_SKIP() << "no shared data (set DMR_SHARED_DATA_DIR): " << dmrtest::SharedDataDir();
+  }
+  // the series as ITK reads it: GDCM file names ordered by slice position, GDCM image IO
+  auto names = itk::GDCMSeriesFileNames::New();
+  names->SetUseSeriesDetails(true);
+  names->SetDirectory(dir);
+  const auto uids = names->GetSeriesUIDs();
+  ASSERT_EQ(uids.size(), 1u);
+  const auto files = names->GetFileNames(uids.front());
+  ASSERT_EQ(files.size(), 141u);
+  auto reader = itk::ImageSeriesReader<CTImageType>::New();
+  auto io = itk::GDCMImageIO::New();
+  reader->SetImageIO(io);
+  reader->SetFileNames(files);
+  reader->Update();
+  CTImageType::Pointer dicom = reader->GetOutput();
+  const auto           size = dicom->GetLargestPossibleRegion().GetSize();
+  std::cout << "DICOM: size " << size << " spacing " << dicom->GetSpacing() << " origin " << dicom->GetOrigin()
+            << "\ndirection\n"
+            << dicom->GetDirection() << std::flush;
+  EXPECT_EQ(size, (itk::Size<3>{ { 512, 512, 141 } }));
+  EXPECT_NEAR(dicom->GetSpacing()[0], 0.977, 1e-3);
+  EXPECT_NEAR(dicom->GetSpacing()[1], 0.977, 1e-3);
+  EXPECT_NEAR(dicom->GetSpacing()[2], 2.0, 1e-3); // from the slice positions: wrong ordering would break this
+  EXPECT_EQ(io->GetComponentType(), itk::IOComponentEnum::SHORT);
+  // slices are ordered along the normal: each file's position lies one spacing further than the previous one
+  {
+    auto single = itk::ImageFileReader<CTImageType>::New();
+    single->SetImageIO(itk::GDCMImageIO::New());
+    for (size_t s = 0; s < files.size(); s += 35)
+    {
+      single->SetFileName(files[s]);
+      single->UpdateOutputInformation();
+      itk::Point<double, 3> expected;
+      itk::Index<3>         idx{ { 0, 0, static_cast<itk::IndexValueType>(s) } };
+      dicom->TransformIndexToPhysicalPoint(idx, expected);
+      EXPECT_LT(single->GetOutput()->GetOrigin().EuclideanDistanceTo(expected), 1e-3) << files[s];
+    }
+  }
+  // the helper the tools use reads the same image
+  auto viaHelper = dmrtools::ReadImageOrDicomSeries<CTImageType>(dir);
+  EXPECT_EQ(viaHelper->GetOrigin(), dicom->GetOrigin());
+  EXPECT_EQ(viaHelper->GetDirection(), dicom->GetDirection());
+
+  // NIfTI conversion written by ITK, read back
+  dmrtest::ScratchDirectory scratch("thorax");
+  const std::string         path = scratch.Path() + "/thorax.nii.gz";
+  auto                      writer = itk::ImageFileWriter<CTImageType>::New();
+  writer->SetInput(dicom);
+  writer->SetFileName(path);
+  writer->UseCompressionOn();
+  writer->Update();
+  auto nifti = itk::ImageFileReader<CTImageType>::New();
+  nifti->SetFileName(path);
+  nifti->Update();
+  const auto * back = nifti->GetOutput();
+  EXPECT_EQ(back->GetLargestPossibleRegion().GetSize(), size);
+  for (unsigned int i = 0; i < 3; ++i)
+  {
+    EXPECT_NEAR(back->GetSpacing()[i], dicom->GetSpacing()[i], 1e-5) << "spacing " << i;
+    EXPECT_NEAR(back->GetOrigin()[i], dicom->GetOrigin()[i], 1e-3) << "origin " << i;
+    for (unsigned int j = 0; j < 3; ++j)
+    {
+      EXPECT_NEAR(back->GetDirection()[i][j], dicom->GetDirection()[i][j], 1e-5) << "direction " << i << j;
+    }
+  }
+  EXPECT_TRUE(std::equal(dicom->GetBufferPointer(),
+                         dicom->GetBufferPointer() + dicom->GetLargestPossibleRegion().GetNumberOfPixels(),
+                         back->GetBufferPointer()))
+    << "voxel values differ after the NIfTI round trip";
+}
+
+TEST(ThoraxCT, LungMaskHasPlausibleVolume)
+{
+  const std::string dir = ThoraxFolder();
+  if (dir.empty())
+  {
+    GTEST_SKIP() << "no shared data (set DMR_SHARED_DATA_DIR): " << dmrtest::SharedDataDir();
+  }
+  auto                     ct = dmrtools::ReadImageOrDicomSeries<CTImageType>(dir);
+  dmrtools::LungMaskReport report;
+  auto                     mask = dmrtools::LungMask(ct.GetPointer(), {}, &report);
+  std::cout << "thorax CT lung mask: " << report.voxels << " voxels, " << report.volumeLitres << " l, "
+            << report.components << " component(s), slice axis " << report.axialAxis << std::endl;
+  ::testing::Test::RecordProperty("lung_volume_ml", static_cast<int>(report.volumeLitres * 1000.0 + 0.5));
+  EXPECT_EQ(report.axialAxis, 2u);
+  EXPECT_GE(report.volumeLitres, 2.0);
+  EXPECT_LE(report.volumeLitres, 8.0);
+  // the lungs sit inside the body, left and right of the midline, away from the in-plane border
+  const auto box = dmrtools::MaskBoundingBox(mask.GetPointer());
+  const auto image = dmrtools::ImageBoundingBox(ct);
+  EXPECT_GT(box.lower[0] - image.lower[0], 30.0);
+  EXPECT_GT(image.upper[0] - box.upper[0], 30.0);
+  EXPECT_GT(box.upper[0] - box.lower[0], 200.0); // both lungs: wider than one
+}
