@@ -29,9 +29,13 @@
 #include "itkGDCMSeriesFileNames.h"
 #include "itkImageIOFactory.h"
 #include "dmrMeshFileIO.h"
+#include "dmrLandmarks.h"
+#include "dmrReadImage.h"
+#include "dmrErrorStatistics.h"
 #include "itk_zlib.h"
 #include "itkResampleImageFilter.h"
 #include "itkLinearInterpolateImageFunction.h"
+#include "itkNearestNeighborInterpolateImageFunction.h"
 #include "itkCommand.h"
 #include "itkMultiThreaderBase.h"
 #include "itksys/SystemTools.hxx"
@@ -56,6 +60,7 @@
 #include <sstream>
 #include <string>
 #include <unistd.h>
+#include <sys/resource.h>
 
 namespace
 {
@@ -77,6 +82,10 @@ struct Options
   long         regularSize{ 0 };
   double       lambda{ 1.0 }, mu{ 1.0 };
   double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
+  std::string  fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
+  bool         landmarksInMM{ false };
+  bool         window{ false };
+  double       windowLow{ 0.0 }, windowHigh{ 0.0 };
 };
 
 const char * const Usage =
@@ -95,6 +104,15 @@ const char * const Usage =
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
+  "  --fixed-mask FILE      region of interest on the fixed image (non-zero = inside, e.g. the lungs): forces,\n"
+  "                         density and SSD only inside it; resampled (nearest) onto the fixed grid if needed\n"
+  "  --intensity-window LO,HI  clamp both images to [LO, HI] and scale to [0, 1] (e.g. -1000,200 for lung CT HU)\n"
+  "  --fixed-landmarks FILE, --moving-landmarks FILE\n"
+  "                         corresponding points (DIR-Lab format: 'x y z' per line, 1-based voxel indices of the\n"
+  "                         fixed / moving image): the report gets tre_mm and tre_initial_mm {mean, std, p95, max}\n"
+  "  --landmarks-in-mm      the landmark files hold physical coordinates (mm) instead of voxel indices\n"
+  "  --truth-displacement FILE  a known displacement field on the fixed grid (mm, ITK convention): the report gets\n"
+  "                         dense_error_mm and dense_error_initial_mm {mean, p95, max} inside the fixed mask (or all)\n"
   "  --report FILE          JSON report (default D/report.json)\n"
   "  --help, --version\n"
   "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u),\n"
@@ -135,6 +153,11 @@ ParseArguments(int argc, char * argv[])
     {
       std::cout << Usage;
       std::exit(EXIT_SUCCESS);
+    }
+    if (a == "--landmarks-in-mm")
+    {
+      opt.landmarksInMM = true;
+      continue;
     }
     if (a == "--version")
     {
@@ -182,6 +205,23 @@ ParseArguments(int argc, char * argv[])
       opt.energyRatio = ParseReal(a, v);
     else if (a == "--alpha-factor")
       opt.alphaFactor = ParseReal(a, v);
+    else if (a == "--fixed-mask")
+      opt.fixedMask = v;
+    else if (a == "--fixed-landmarks")
+      opt.fixedLandmarks = v;
+    else if (a == "--moving-landmarks")
+      opt.movingLandmarks = v;
+    else if (a == "--truth-displacement")
+      opt.truthDisplacement = v;
+    else if (a == "--intensity-window")
+    {
+      const auto comma = v.find(',');
+      if (comma == std::string::npos)
+        throw UsageError("--intensity-window expects LO,HI, got '" + v + "'");
+      opt.windowLow = ParseReal(a, v.substr(0, comma));
+      opt.windowHigh = ParseReal(a, v.substr(comma + 1));
+      opt.window = true;
+    }
     else
       throw UsageError("unknown option " + a + " (see --help)");
   }
@@ -205,6 +245,15 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--backend must be auto, cpu or cuda");
   if (opt.regularSize != 0 && opt.regularSize < 2)
     throw UsageError("--regular-size must be at least 2");
+  if (opt.window && !(opt.windowHigh > opt.windowLow))
+    throw UsageError("--intensity-window: HI must be greater than LO");
+  if (opt.fixedLandmarks.empty() != opt.movingLandmarks.empty())
+    throw UsageError("--fixed-landmarks and --moving-landmarks go together");
+  for (const std::string * f : { &opt.fixedMask, &opt.fixedLandmarks, &opt.movingLandmarks, &opt.truthDisplacement })
+  {
+    if (!f->empty() && !itksys::SystemTools::FileExists(*f, true))
+      throw UsageError("no such file: " + *f);
+  }
   if (!opt.report.empty())
   {
     const std::string dir = itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
@@ -269,22 +318,7 @@ template <typename TImage>
 typename TImage::Pointer
 ReadImage(const std::string & path)
 {
-  if (itksys::SystemTools::FileIsDirectory(path))
-  {
-    auto names = itk::GDCMSeriesFileNames::New();
-    names->SetUseSeriesDetails(true);
-    names->SetDirectory(path);
-    const auto uids = names->GetSeriesUIDs();
-    auto       reader = itk::ImageSeriesReader<TImage>::New();
-    reader->SetImageIO(itk::GDCMImageIO::New());
-    reader->SetFileNames(names->GetFileNames(uids.front()));
-    reader->Update();
-    return reader->GetOutput();
-  }
-  auto reader = itk::ImageFileReader<TImage>::New();
-  reader->SetFileName(path);
-  reader->Update();
-  return reader->GetOutput();
+  return dmrtools::ReadImageOrDicomSeries<TImage>(path);
 }
 
 template <typename TImage>
@@ -413,6 +447,76 @@ struct Staging
   }
 };
 
+/** An ITK exception's description without its "ITK ERROR: " prefix (messages are meant for one line). */
+std::string
+WithoutItkPrefix(std::string text)
+{
+  const std::string prefix = "ITK ERROR: ";
+  const auto        at = text.find(prefix);
+  if (at != std::string::npos)
+  {
+    text.erase(at, prefix.size());
+  }
+  return text;
+}
+
+/** True when both images have the same size, origin, spacing and direction (to a relative tolerance). */
+template <typename TA, typename TB>
+bool
+SameGrid(const TA * a, const TB * b)
+{
+  constexpr unsigned int D = TA::ImageDimension;
+  if (a->GetLargestPossibleRegion().GetSize() != b->GetLargestPossibleRegion().GetSize())
+  {
+    return false;
+  }
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    const double tol = 1e-6 * std::max(1.0, std::abs(a->GetSpacing()[r]));
+    if (std::abs(a->GetSpacing()[r] - b->GetSpacing()[r]) > tol || std::abs(a->GetOrigin()[r] - b->GetOrigin()[r]) > 1e-4)
+    {
+      return false;
+    }
+    for (unsigned int c = 0; c < D; ++c)
+    {
+      if (std::abs(a->GetDirection()[r][c] - b->GetDirection()[r][c]) > 1e-6)
+      {
+        return false;
+      }
+    }
+  }
+  return true;
+}
+
+/** Resample an image onto the grid of a reference image through physical space (identity transform). */
+template <typename TImage, typename TReference>
+typename TImage::Pointer
+ResampleOnto(const TImage * image, const TReference * reference, bool nearest, typename TImage::PixelType outside)
+{
+  auto resample = itk::ResampleImageFilter<TImage, TImage, double>::New();
+  resample->SetInput(image);
+  resample->SetOutputParametersFromImage(reference);
+  resample->SetDefaultPixelValue(outside);
+  if (nearest)
+  {
+    resample->SetInterpolator(itk::NearestNeighborInterpolateImageFunction<TImage, double>::New());
+  }
+  resample->Update();
+  typename TImage::Pointer out = resample->GetOutput();
+  out->DisconnectPipeline();
+  return out;
+}
+
+/** Peak resident set size of this process so far, in MiB. */
+double
+PeakRSSMiB()
+{
+  struct rusage usage
+  {};
+  getrusage(RUSAGE_SELF, &usage);
+  return static_cast<double>(usage.ru_maxrss) / 1024.0; // ru_maxrss is in KiB on Linux
+}
+
 template <unsigned int D>
 int
 Run(const Options & opt)
@@ -432,6 +536,60 @@ Run(const Options & opt)
   {
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
+  if (opt.window)
+  {
+    // CT: clamp to the window and scale to [0, 1] so that the SSD (and beta) are well scaled for HU
+    const float lo = static_cast<float>(opt.windowLow), scale = static_cast<float>(1.0 / (opt.windowHigh - opt.windowLow));
+    for (ImageType * image : { fixed.GetPointer(), moving.GetPointer() })
+    {
+      float *      v = image->GetBufferPointer();
+      const size_t count = image->GetBufferedRegion().GetNumberOfPixels();
+      for (size_t p = 0; p < count; ++p)
+      {
+        v[p] = (std::min(std::max(v[p], lo), static_cast<float>(opt.windowHigh)) - lo) * scale;
+      }
+      image->Modified();
+    }
+  }
+  const bool movingResampled = !SameGrid(fixed.GetPointer(), moving.GetPointer());
+  typename ImageType::Pointer movingInput = moving; // as read (and windowed): the warped output samples it
+  if (movingResampled)
+  {
+    // a moving image on another grid is brought onto the fixed grid first (linear, outside = its minimum)
+    moving = ResampleOnto(moving.GetPointer(), fixed.GetPointer(), false, itk::dmr::IntensityRange(moving.GetPointer()).first);
+  }
+  using MaskType = typename MethodType::MaskImageType;
+  typename MaskType::Pointer mask;
+  if (!opt.fixedMask.empty())
+  {
+    if (ImageDimensionOf(opt.fixedMask) != D)
+    {
+      throw UsageError("--fixed-mask is not a " + std::to_string(D) + "D image: " + opt.fixedMask);
+    }
+    try
+    {
+      mask = ReadImage<MaskType>(opt.fixedMask);
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("cannot read --fixed-mask: " + std::string(e.GetDescription()));
+    }
+    if (!SameGrid(fixed.GetPointer(), mask.GetPointer()))
+    {
+      mask = ResampleOnto(mask.GetPointer(), fixed.GetPointer(), true, 0);
+    }
+    size_t inside = 0;
+    unsigned char * m = mask->GetBufferPointer();
+    for (size_t p = 0, count = mask->GetBufferedRegion().GetNumberOfPixels(); p < count; ++p)
+    {
+      m[p] = m[p] != 0 ? 1 : 0;
+      inside += m[p];
+    }
+    if (inside == 0)
+    {
+      throw UsageError("--fixed-mask has no voxel inside the fixed image: " + opt.fixedMask);
+    }
+  }
   const long nodes = opt.nodesGiven ? opt.nodes : (D == 2 ? 100 : 3000);
   const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
   if (nodes < 4 || nodes > pixels)
@@ -450,9 +608,65 @@ Run(const Options & opt)
     }
   }
 
+  dmrtools::LandmarkPairs<D> landmarks;
+  if (!opt.fixedLandmarks.empty())
+  {
+    try
+    {
+      landmarks = dmrtools::ReadLandmarkPairs<D>(opt.fixedLandmarks,
+                                                 opt.movingLandmarks,
+                                                 fixed.GetPointer(),
+                                                 movingInput.GetPointer(),
+                                                 opt.landmarksInMM ? dmrtools::LandmarkUnits::PhysicalMM
+                                                                   : dmrtools::LandmarkUnits::OneBasedIndex);
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("landmarks: " + WithoutItkPrefix(e.GetDescription()));
+    }
+    const auto size = fixed->GetLargestPossibleRegion().GetSize();
+    for (size_t i = 0; i < landmarks.fixed.size(); ++i)
+    {
+      const auto ci = fixed->template TransformPhysicalPointToContinuousIndex<double, double>(landmarks.fixed[i]);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        if (!(ci[k] >= -0.5 && ci[k] <= static_cast<double>(size[k]) - 0.5))
+        {
+          throw UsageError("landmarks: fixed landmark " + std::to_string(i + 1) + " of " + opt.fixedLandmarks +
+                           " lies outside the fixed image");
+        }
+      }
+    }
+  }
+  using FieldType = typename MethodType::DisplacementFieldType;
+  typename FieldType::Pointer truth;
+  if (!opt.truthDisplacement.empty())
+  {
+    if (ImageDimensionOf(opt.truthDisplacement) != D)
+    {
+      throw UsageError("--truth-displacement is not a " + std::to_string(D) + "D field: " + opt.truthDisplacement);
+    }
+    try
+    {
+      truth = ReadImage<FieldType>(opt.truthDisplacement);
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("cannot read --truth-displacement: " + std::string(e.GetDescription()));
+    }
+    if (!SameGrid(fixed.GetPointer(), truth.GetPointer()))
+    {
+      throw UsageError("--truth-displacement must lie on the fixed image grid: " + opt.truthDisplacement);
+    }
+  }
+
   auto method = MethodType::New();
   method->SetFixedImage(fixed);
   method->SetMovingImage(moving);
+  if (mask)
+  {
+    method->SetFixedMask(mask);
+  }
   method->SetNumberOfNodes(static_cast<itk::SizeValueType>(nodes));
   method->SetNumberOfIterations(static_cast<unsigned int>(opt.iterations));
   method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));
@@ -560,7 +774,7 @@ Run(const Options & opt)
   auto field = method->GetDisplacementField();
   using ResampleType = itk::ResampleImageFilter<ImageType, ImageType, double>;
   auto resample = ResampleType::New();
-  resample->SetInput(moving);
+  resample->SetInput(movingInput);
   resample->SetTransform(method->GetTransform());
   resample->SetOutputParametersFromImage(fixed);
   resample->SetInterpolator(itk::LinearInterpolateImageFunction<ImageType, double>::New());
@@ -592,6 +806,35 @@ Run(const Options & opt)
     pvd << "  </Collection>\n</VTKFile>\n";
   }
 #endif
+  auto statisticsJson = [](const dmrtools::ErrorStatistics & e) {
+    std::ostringstream o;
+    o << std::setprecision(6) << "{\"mean\": " << e.mean << ", \"std\": " << e.std << ", \"p95\": " << e.p95
+      << ", \"max\": " << e.max << ", \"count\": " << e.count << "}";
+    return o.str();
+  };
+  std::string evaluation;
+  if (!landmarks.fixed.empty())
+  {
+    try
+    {
+      evaluation += "  \"tre_initial_mm\": " +
+                    statisticsJson(dmrtools::InitialTargetRegistrationError<D>(landmarks.fixed, landmarks.moving)) +
+                    ",\n  \"tre_mm\": " +
+                    statisticsJson(dmrtools::TargetRegistrationError(landmarks.fixed, landmarks.moving, field)) + ",\n";
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("landmarks: " + WithoutItkPrefix(e.GetDescription()));
+    }
+  }
+  if (truth)
+  {
+    evaluation += "  \"dense_error_initial_mm\": " +
+                  statisticsJson(dmrtools::DisplacementMagnitudeInMask(truth.GetPointer(), mask.GetPointer())) +
+                  ",\n  \"dense_error_mm\": " +
+                  statisticsJson(dmrtools::DisplacementErrorInMask(field, truth.GetPointer(), mask.GetPointer())) +
+                  ",\n";
+  }
   const auto & t = method->GetTiming();
   const double ssdInitial = history.empty() ? method->GetFinalSSD() : history.front().ssd;
   const double mssdInitial = history.empty() ? method->GetFinalMSSD() : history.front().mssd;
@@ -631,6 +874,10 @@ Run(const Options & opt)
        << "  \"mssd_final\": " << method->GetFinalMSSD() << ",\n"
        << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
+       << evaluation
+       << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
+       << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + JsonEscape(opt.fixedMask) + "\"") << ",\n"
+       << "  \"peak_rss_mb\": " << PeakRSSMiB() << ",\n"
        << "  \"wall_time_s\": "
        << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count() << "\n"
        << "}\n";
@@ -709,7 +956,7 @@ main(int argc, char * argv[])
     }
     if (dFixed == 3)
     {
-      throw UsageError("3D images are not supported by this version yet (2D only)");
+      return Run<3>(opt);
     }
     throw UsageError("only 2D and 3D images are supported, got " + std::to_string(dFixed) + "D");
   }

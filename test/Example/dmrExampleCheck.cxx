@@ -20,7 +20,9 @@
 //                                          direction (any pixel type, any number of components)
 //   dmrExampleCheck components A N         exit 0 iff every pixel of A has N components
 //   dmrExampleCheck min-above A T          exit 0 iff every pixel (every component) of A is > T
-//   dmrExampleCheck make-3d OUT            writes a 16x12x10 float image with a gradient and a bright cube
+//   dmrExampleCheck make-3d OUT [SHIFT]    writes a 16x12x10 float image with a gradient and a bright cube (moved by
+//                                          SHIFT voxels along x)
+//   dmrExampleCheck make-3d-mask OUT       writes a mask of the inner part of that image on a coarser grid (spacing 2)
 //   dmrExampleCheck make-constant OUT      writes a 32x32 float image that is 7 everywhere
 //   dmrExampleCheck make-2d OUT            writes a 32x32 float image with a gradient and a bright square
 #include "itkImage.h"
@@ -183,7 +185,7 @@ Write(const TImage * image, const std::string & path)
 }
 
 int
-Make3D(const std::string & path)
+Make3D(const std::string & path, int shift)
 {
   using ImageType = itk::Image<float, 3>;
   auto                image = ImageType::New();
@@ -193,11 +195,37 @@ Make3D(const std::string & path)
   for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
   {
     const auto & idx = it.GetIndex();
-    const bool   cube = idx[0] >= 4 && idx[0] < 10 && idx[1] >= 3 && idx[1] < 8 && idx[2] >= 2 && idx[2] < 7;
+    const bool   cube = idx[0] >= 4 + shift && idx[0] < 10 + shift && idx[1] >= 3 && idx[1] < 8 && idx[2] >= 2 && idx[2] < 7;
     it.Set(static_cast<float>(0.01 * idx[0] + (cube ? 1.0 : 0.0)));
   }
   Write(image.GetPointer(), path);
   return FileDimension(path) == 3 ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+int
+Make3DMask(const std::string & path)
+{
+  using MaskType = itk::Image<unsigned char, 3>;
+  auto               mask = MaskType::New();
+  MaskType::SizeType size{ { 8, 6, 5 } };
+  mask->SetRegions(MaskType::RegionType(size));
+  MaskType::SpacingType spacing;
+  spacing.Fill(2.0);
+  mask->SetSpacing(spacing);
+  MaskType::PointType origin;
+  origin.Fill(0.5);
+  mask->SetOrigin(origin);
+  mask->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<MaskType> it(mask, mask->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    it.Set(idx[0] >= 1 && idx[0] < 7 && idx[1] >= 1 && idx[1] < 5 && idx[2] >= 1 && idx[2] < 4 ? 1 : 0);
+  }
+  auto writer = itk::ImageFileWriter<MaskType>::New();
+  writer->SetInput(mask);
+  writer->SetFileName(path);
+  writer->Update();
+  return EXIT_SUCCESS;
 }
 
 int
@@ -221,7 +249,8 @@ Make2D(const std::string & path, bool constant)
 int
 Usage()
 {
-  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT | make-2d OUT | "
+  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | make-3d-mask OUT | "
+               "make-2d OUT | "
                "make-constant OUT\n";
   return 2;
 }
@@ -237,9 +266,13 @@ main(int argc, char * argv[])
   const std::string mode = argv[1];
   try
   {
-    if (mode == "make-3d" && argc == 3)
+    if (mode == "make-3d" && (argc == 3 || argc == 4))
     {
-      return Make3D(argv[2]);
+      return Make3D(argv[2], argc == 4 ? std::atoi(argv[3]) : 0);
+    }
+    if (mode == "make-3d-mask" && argc == 3)
+    {
+      return Make3DMask(argv[2]);
     }
     if (mode == "make-constant" && argc == 3)
     {

@@ -112,7 +112,7 @@ expect_bad_input() {
 
 # check_run_outputs OUT ITERATIONS MESH_MODE NODES: the common checks on a successful run's output directory
 check_run_outputs() {
-  local out=$1 iterations=$2 mode=$3 nodes=$4 report="$1/report.json"
+  local out=$1 iterations=$2 mode=$3 nodes=$4 dimension=${5:-2} fixed=${6:-$DATA/fixed.nii.gz} report="$1/report.json"
   for f in warped.nii.gz displacement.nii.gz jacobian.nii.gz energy.csv mesh.pvd report.json; do
     check "$f exists and is non-empty" nonempty "$out/$f"
   done
@@ -139,7 +139,7 @@ check_run_outputs() {
     v=$(echo "$timing" | sed -n "s/.*\"$key\": *\([-0-9.eE+]*\).*/\1/p")
     if is_number "$v" && awk_true "$v >= 0"; then pass "report: timing_s.$key = $v"; else fail "report: timing_s.$key missing or negative ('$v')"; fi
   done
-  check "report: dimension is 2" test "$(json_number "$report" dimension)" = 2
+  check "report: dimension is $dimension" test "$(json_number "$report" dimension)" = "$dimension"
   check "report: nodes is $nodes" test "$(json_number "$report" nodes)" = "$nodes"
   check "report: iterations is $iterations" test "$(json_number "$report" iterations)" = "$iterations"
   check "report: mesh_mode is $mode" test "$(json_string "$report" mesh_mode)" = "$mode"
@@ -183,11 +183,11 @@ check_run_outputs() {
 
   # output images on the fixed image's grid
   for f in warped displacement jacobian; do
-    check "$f.nii.gz has the fixed image's size/spacing/origin/direction" "$CHECK" same-grid "$DATA/fixed.nii.gz" "$out/$f.nii.gz"
+    check "$f.nii.gz has the fixed image's size/spacing/origin/direction" "$CHECK" same-grid "$fixed" "$out/$f.nii.gz"
   done
   check "warped.nii.gz is scalar" "$CHECK" components "$out/warped.nii.gz" 1
   check "jacobian.nii.gz is scalar" "$CHECK" components "$out/jacobian.nii.gz" 1
-  check "displacement.nii.gz has 2 components" "$CHECK" components "$out/displacement.nii.gz" 2
+  check "displacement.nii.gz has $dimension components" "$CHECK" components "$out/displacement.nii.gz" "$dimension"
   check "jacobian.nii.gz: det J > 0 in every pixel" "$CHECK" min-above "$out/jacobian.nii.gz" 0
 }
 
@@ -263,6 +263,49 @@ run-fidelity)
   check "registration exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 static 30
+  ;;
+run-3d)
+  # a 3D pair with a mask on a coarser grid (resampled onto the fixed grid) and two landmark pairs
+  check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
+  check "make a 3D moving image (cube 1 voxel further along x)" "$CHECK" make-3d "$W/moving3d.nii.gz" 1
+  check "make a 3D mask on a coarser grid" "$CHECK" make-3d-mask "$W/mask3d.nii.gz"
+  printf '6 5 4\n9 7 6\n' >"$W/fixed.txt"
+  printf '7 5 4\n10 7 6\n' >"$W/moving.txt"
+  out="$W/out"
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$out" --nodes 20 --iterations 5 \
+    --threads 2 --fixed-mask "$W/mask3d.nii.gz" --fixed-landmarks "$W/fixed.txt" --moving-landmarks "$W/moving.txt"
+  cat "$W/stdout" "$W/stderr"
+  check "registration exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 5 dynamic 20 3 "$W/fixed3d.nii.gz"
+  check "report: fixed_mask recorded" grep -q '"fixed_mask": "' "$out/report.json"
+  tre0=$(sed -n 's/^ *"tre_initial_mm": {"mean": \([-0-9.eE+]*\),.*/\1/p' "$out/report.json")
+  tre1=$(sed -n 's/^ *"tre_mm": {"mean": \([-0-9.eE+]*\),.*/\1/p' "$out/report.json")
+  echo "TRE mean before $tre0, after $tre1"
+  check "report: tre_initial_mm.mean is 1 mm (the landmarks are 1 voxel apart)" awk_true "${tre0:-0} == 1"
+  check "report: tre_mm.mean is a number below the initial one" awk_true "${tre1:-99} < 1"
+  rss=$(json_number "$out/report.json" peak_rss_mb)
+  check "report: peak_rss_mb is positive ('$rss')" awk_true "${rss:-0} > 0"
+  ;;
+bad-3d-options)
+  check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
+  check "make a 3D moving image" "$CHECK" make-3d "$W/moving3d.nii.gz" 1
+  F3=(--fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --nodes 20 --iterations 2)
+  expect_bad_input window-reversed "${F3[@]}" --intensity-window 5,1
+  expect_bad_input window-one-value "${F3[@]}" --intensity-window 5
+  expect_bad_input window-constant "${F3[@]}" --intensity-window 2,3
+  printf '6 5 4\n9 7 6\n' >"$W/two.txt"
+  printf '6 5 4\n' >"$W/one.txt"
+  printf '6 5\n' >"$W/short.txt"
+  printf '100 100 100\n' >"$W/far.txt"
+  expect_bad_input landmarks-count "${F3[@]}" --fixed-landmarks "$W/two.txt" --moving-landmarks "$W/one.txt"
+  expect_bad_input landmarks-malformed "${F3[@]}" --fixed-landmarks "$W/short.txt" --moving-landmarks "$W/one.txt"
+  expect_bad_input landmarks-alone "${F3[@]}" --fixed-landmarks "$W/two.txt"
+  expect_bad_input landmarks-outside "${F3[@]}" --fixed-landmarks "$W/far.txt" --moving-landmarks "$W/far.txt"
+  "$CHECK" make-constant "$W/mask2d.nii.gz"
+  expect_bad_input mask-2d "${F3[@]}" --fixed-mask "$W/mask2d.nii.gz"
+  expect_bad_input mask-missing "${F3[@]}" --fixed-mask "$W/no-mask.nii.gz"
+  expect_bad_input truth-2d "${F3[@]}" --truth-displacement "$W/mask2d.nii.gz"
   ;;
 bad-missing-fixed)
   expect_bad_input missing-fixed --fixed "$W/does-not-exist.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2
