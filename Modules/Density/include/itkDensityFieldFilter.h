@@ -103,6 +103,16 @@ public:
   itkSetClampMacro(Alpha, double, 0.0, NumericTraits<double>::max());
   itkGetConstMacro(Alpha, double);
 
+  /** Fill the physical-frame force field output (on by default). The registration turns it off and reads
+   * GetGridForce(): at 512x512x141 voxels the second copy of the force would cost 450 MB. */
+  itkSetMacro(ComputeForceField, bool);
+  itkGetConstMacro(ComputeForceField, bool);
+  itkBooleanMacro(ComputeForceField);
+
+  /** Free the pyramids, the grid force and the outputs' buffers (the next Update rebuilds them). */
+  void
+  ReleaseInternalBuffers();
+
   /** Results of the last update. */
   itkGetConstMacro(MSSD, double);
   itkGetConstMacro(SSD, double);
@@ -165,6 +175,7 @@ private:
   unsigned int m_NumberOfLevels{ 3 };
   double       m_AlphaFactor{ 0.1 };
   bool         m_UseFixedAlpha{ false };
+  bool         m_ComputeForceField{ true };
   double       m_Alpha{ 0.0 };
   double       m_MSSD{ 0.0 };
   double       m_SSD{ 0.0 };

@@ -313,15 +313,24 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   density->SetBufferedRegion(density->GetRequestedRegion());
   density->Allocate();
   ForceFieldType * force = this->GetForceField();
-  force->SetBufferedRegion(force->GetLargestPossibleRegion());
-  force->Allocate();
+  if (m_ComputeForceField)
+  {
+    force->SetBufferedRegion(force->GetLargestPossibleRegion());
+    force->Allocate();
+  }
+  else
+  {
+    force->Initialize(); // no buffer
+    force->CopyInformation(fixed);
+    force->SetLargestPossibleRegion(fixed->GetLargestPossibleRegion());
+  }
   m_GridForce.resize(n * D);
 
   const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
   const MaskImageType * maskImage = this->GetFixedMask();
   const auto *          maskBuffer = maskImage ? maskImage->GetBufferPointer() : nullptr;
   auto *       densityBuffer = density->GetBufferPointer();
-  auto *       forceBuffer = force->GetBufferPointer();
+  auto *       forceBuffer = m_ComputeForceField ? force->GetBufferPointer() : nullptr;
   float *      gridForce = m_GridForce.data();
   const auto * levels = m_Levels.data();
   const unsigned int nLevels = m_NumberOfLevels;
@@ -357,7 +366,10 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
             for (unsigned int k = 0; k < D; ++k)
             {
               gridForce[p * D + k] = 0.0f;
-              forceBuffer[p][k] = 0;
+              if (forceBuffer)
+              {
+                forceBuffer[p][k] = 0;
+              }
             }
             densityBuffer[p] = 0;
             continue;
@@ -419,7 +431,10 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
             {
               phys += dirF[k][j] * f[j];
             }
-            forceBuffer[p][k] = static_cast<typename ForceFieldType::PixelType::ValueType>(phys);
+            if (forceBuffer)
+            {
+              forceBuffer[p][k] = static_cast<typename ForceFieldType::PixelType::ValueType>(phys);
+            }
           }
           densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(f2);
           acc.f2 += f2;
@@ -504,12 +519,28 @@ DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType 
 
 template <typename TF, typename TM, typename TD, typename TO>
 void
+DensityFieldFilter<TF, TM, TD, TO>::ReleaseInternalBuffers()
+{
+  std::vector<Level>().swap(m_Levels);
+  std::vector<float>().swap(m_GridForce);
+  m_PyramidTime = 0;
+  m_PyramidFixed = nullptr;
+  m_PyramidMoving = nullptr;
+  m_PyramidLevels = 0;
+  this->GetOutput()->ReleaseData();
+  this->GetForceField()->ReleaseData();
+  this->Modified();
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
 DensityFieldFilter<TF, TM, TD, TO>::PrintSelf(std::ostream & os, Indent indent) const
 {
   Superclass::PrintSelf(os, indent);
   os << indent << "NumberOfLevels: " << m_NumberOfLevels << std::endl;
   os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
   os << indent << "UseFixedAlpha: " << (m_UseFixedAlpha ? "On" : "Off") << std::endl;
+  os << indent << "ComputeForceField: " << (m_ComputeForceField ? "On" : "Off") << std::endl;
   os << indent << "Alpha: " << m_Alpha << std::endl;
   os << indent << "MSSD: " << m_MSSD << std::endl;
   os << indent << "SSD: " << m_SSD << std::endl;

@@ -99,8 +99,9 @@ MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v)
 /** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until both its largest
  * displacement and its largest change between neighbouring pixels are below half a pixel, then the field is
  * composed with itself as many times. The second bound keeps each small step invertible where v varies sharply
- * (thin elements of a static mesh), so det J stays positive. scratch is resized as needed. Returns the number of
- * squarings. */
+ * (thin elements of a static mesh), so det J stays positive. scratch is resized as needed; it may be the storage
+ * of v itself (v is read completely before scratch is written), which saves one field of memory. Returns the
+ * number of squarings. */
 template <unsigned int D>
 unsigned int
 ExponentialField(const Grid<D> &      grid,

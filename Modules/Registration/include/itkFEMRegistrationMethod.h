@@ -182,7 +182,8 @@ public:
   {
     return *m_CurrentMesh;
   }
-  /** The CVT labels of the current iteration (dynamic mode; nullptr otherwise). */
+  /** The CVT labels of the current iteration (dynamic mode, in an IterationEvent observer; nullptr otherwise and
+   * after the run, which frees them). */
   const LabelImageType *
   GetCurrentLabels() const
   {

@@ -197,7 +197,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   const double        dV = grid.PixelVolume();
 
   // current transformation W(x) = x + w(x): grid-frame flat copy + physical image for the density filter
-  std::vector<float> w(n * D, 0.0f), update(n * D), expUpdate(n * D), composed(n * D), scratch;
+  // three full fields: w, the update (also the scratch of exp and the target of the composition) and exp(update)
+  std::vector<float> w(n * D, 0.0f), update(n * D), expUpdate(n * D);
   DisplacementFieldType * field = this->GetDisplacementField();
   field->SetBufferedRegion(field->GetLargestPossibleRegion());
   field->Allocate();
@@ -207,6 +208,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_DensityFilter->SetMovingImage(moving);
   m_DensityFilter->SetDisplacementField(field);
   m_DensityFilter->SetFixedMask(this->GetFixedMask());
+  m_DensityFilter->ComputeForceFieldOff(); // the registration reads the grid-frame force
   m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
   m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
   m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
@@ -350,9 +352,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
     bary.Interpolate(nodalU, 1.0 / m_Beta, update.data(), threader); // u = K^-1 f / beta at every pixel
     record.maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
-    dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), scratch, threader);
-    dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), composed.data(), threader); // W <- W o exp(u)
-    w.swap(composed);
+    dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
+    dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader); // W <- W o exp(u)
+    w.swap(update);
     this->WriteGridFieldToImage(w, field);
     m_Timing.registration += seconds(t0, Clock::now());
 
@@ -368,6 +370,15 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_FinalSSD = m_DensityFilter->GetSSD() * dV;
   m_FinalMSSD = m_DensityFilter->GetMSSD() * dV;
   m_Timing.registration += seconds(t0, Clock::now());
+  // free the per-voxel working memory before the transform's double copy of the field is made (peak RSS)
+  for (auto * v : { &w, &update, &expUpdate })
+  {
+    std::vector<float>().swap(*v);
+  }
+  bary = dmr::BarycentricMap<D>();
+  m_DensityFilter->ReleaseInternalBuffers();
+  m_CVTFilter->GetOutput()->ReleaseData();
+  m_Labels = nullptr;
 
   // transform output (double field, as ResampleImageFilter expects)
   using TransformFieldType = typename TransformType::DisplacementFieldType;
