@@ -23,6 +23,8 @@
 #include "dmrErrorStatistics.h"
 #include "dmrLungMask.h"
 #include "dmrReadImage.h"
+#include "itkResampleImageFilter.h"
+#include <array>
 #include "itkImageFileWriter.h"
 #include "itkImageIOFactory.h"
 #include "itksys/SystemTools.hxx"
@@ -40,7 +42,7 @@
 namespace
 {
 const char * const kUsage =
-  "Usage: dmrGenerateBreathing --input CT --output-dir D [--amplitude-mm A] [--float]\n"
+  "Usage: dmrGenerateBreathing --input CT --output-dir D [--amplitude-mm A] [--size NX,NY,NZ] [--float]\n"
   "  CT: a 3D CT in HU, as an image file (NIfTI .nii/.nii.gz, .mha, ...) or a directory holding one DICOM series\n"
   "      (slices ordered by position).\n"
   "  Writes into D (created if missing; files appear only when everything succeeded):\n"
@@ -51,6 +53,8 @@ const char * const kUsage =
   "    lung-mask.nii.gz             lung mask of the fixed CT (uint8 0/1; HU < -400 inside the body)\n"
   "  --amplitude-mm A  peak inferior displacement of the diaphragm in mm (default 15; lateral and anterior-posterior\n"
   "                    expansion are 0.2 A and 0.33 A)\n"
+  "  --size NX,NY,NZ   first resample the CT (linear) onto a grid of this size covering the same physical box\n"
+  "                    (e.g. 256,256,132 for the paper's 3D benchmark size)\n"
   "  --float           write fixed/moving as float (default: short when the CT holds integers in the int16 range)\n"
   "  Prints the field's max |u|, det(I + grad u) range, the lung volume and |u| inside the lungs.\n";
 
@@ -65,6 +69,7 @@ struct Options
   std::string input, outputDir;
   double      amplitude{ 15.0 };
   bool        forceFloat{ false };
+  std::array<unsigned long, 3> size{ { 0, 0, 0 } }; // 0: keep the input grid
 };
 
 std::string
@@ -121,6 +126,18 @@ ParseArguments(int argc, char * argv[])
       {
         throw UsageError("--amplitude-mm needs a number in [0, 100], got \"" + v + "\"");
       }
+    }
+    else if (a == "--size")
+    {
+      const std::string v = value();
+      unsigned long     n[3];
+      char              tail = 0;
+      if (std::sscanf(v.c_str(), "%lu,%lu,%lu%c", &n[0], &n[1], &n[2], &tail) != 3 || n[0] < 8 || n[1] < 8 ||
+          n[2] < 8 || n[0] > 4096 || n[1] > 4096 || n[2] > 4096)
+      {
+        throw UsageError("--size needs NX,NY,NZ with 8 <= N <= 4096, got \"" + v + "\"");
+      }
+      opt.size = { { n[0], n[1], n[2] } };
     }
     else if (a == "--float")
     {
@@ -287,6 +304,35 @@ Run(const Options & opt)
   catch (const itk::ExceptionObject & e)
   {
     throw UsageError("cannot read " + opt.input + ": " + e.GetDescription());
+  }
+  if (opt.size[0] > 0)
+  {
+    // same physical box (outer voxel centres kept): spacing' = spacing (n - 1) / (n' - 1)
+    const auto                in = fixed->GetLargestPossibleRegion().GetSize();
+    ImageType::SizeType       outSize;
+    ImageType::SpacingType    spacing;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      outSize[k] = opt.size[k];
+      spacing[k] = fixed->GetSpacing()[k] * static_cast<double>(in[k] - 1) / static_cast<double>(opt.size[k] - 1);
+    }
+    auto resample = itk::ResampleImageFilter<ImageType, ImageType, double>::New();
+    resample->SetInput(fixed);
+    resample->SetSize(outSize);
+    resample->SetOutputSpacing(spacing);
+    resample->SetOutputOrigin(fixed->GetOrigin());
+    resample->SetOutputDirection(fixed->GetDirection());
+    resample->SetDefaultPixelValue(-1000.0f);
+    resample->Update();
+    fixed = resample->GetOutput();
+    fixed->DisconnectPipeline();
+    // keep integral HU so that the output stays short
+    float *      v = fixed->GetBufferPointer();
+    const size_t count = fixed->GetBufferedRegion().GetNumberOfPixels();
+    for (size_t p = 0; p < count; ++p)
+    {
+      v[p] = std::round(v[p]);
+    }
   }
   const auto size = fixed->GetLargestPossibleRegion().GetSize();
   for (unsigned int k = 0; k < 3; ++k)
