@@ -80,6 +80,8 @@ struct Options
   long         threads{ 0 };
   long         saveMeshEvery{ 0 };
   long         regularSize{ 0 };
+  long         cvtMaxSweeps{ 1000 };
+  double       cvtEpsilon{ 0.0 };
   double       lambda{ 1.0 }, mu{ 1.0 };
   double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
   std::string  fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
@@ -101,6 +103,8 @@ const char * const Usage =
   "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
   "  --energy-ratio R       beta is set at iteration 1 so that beta R / D = R (default 0.02, paper 5.1)\n"
   "  --alpha-factor A       density base value alpha = A x mean |f|^2 (default 0.1, paper 5.1)\n"
+  "  --cvt-max-sweeps S     at most S swap sweeps of the CVT optimisation per iteration (default 1000: converge)\n"
+  "  --cvt-epsilon E        stop the CVT sweeps when a sweep lowers the energy by at most E x energy (default 0)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
@@ -197,6 +201,10 @@ ParseArguments(int argc, char * argv[])
       opt.saveMeshEvery = ParseInteger(a, v);
     else if (a == "--regular-size")
       opt.regularSize = ParseInteger(a, v);
+    else if (a == "--cvt-max-sweeps")
+      opt.cvtMaxSweeps = ParseInteger(a, v);
+    else if (a == "--cvt-epsilon")
+      opt.cvtEpsilon = ParseReal(a, v);
     else if (a == "--lambda")
       opt.lambda = ParseReal(a, v);
     else if (a == "--mu")
@@ -245,6 +253,10 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--backend must be auto, cpu or cuda");
   if (opt.regularSize != 0 && opt.regularSize < 2)
     throw UsageError("--regular-size must be at least 2");
+  if (opt.cvtMaxSweeps < 1)
+    throw UsageError("--cvt-max-sweeps must be at least 1");
+  if (!(opt.cvtEpsilon >= 0.0 && opt.cvtEpsilon <= 1.0))
+    throw UsageError("--cvt-epsilon must be in [0, 1]");
   if (opt.window && !(opt.windowHigh > opt.windowLow))
     throw UsageError("--intensity-window: HI must be greater than LO");
   if (opt.fixedLandmarks.empty() != opt.movingLandmarks.empty())
@@ -675,6 +687,8 @@ Run(const Options & opt)
   method->SetEnergyRatio(opt.energyRatio);
   method->SetAlphaFactor(opt.alphaFactor);
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
+  method->SetMaximumNumberOfSweeps(static_cast<itk::SizeValueType>(opt.cvtMaxSweeps));
+  method->SetCVTEpsilon(opt.cvtEpsilon);
   if (opt.threads > 0)
   {
     method->SetNumberOfWorkUnits(static_cast<itk::ThreadIdType>(opt.threads));
@@ -864,6 +878,8 @@ Run(const Options & opt)
        << "  \"energy_ratio\": " << opt.energyRatio << ",\n"
        << "  \"alpha_factor\": " << opt.alphaFactor << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"
+       << "  \"cvt_max_sweeps\": " << opt.cvtMaxSweeps << ",\n"
+       << "  \"cvt_epsilon\": " << opt.cvtEpsilon << ",\n"
        << "  \"timing_s\": {\"total\": " << t.total << ", \"initial_tessellation\": " << t.initialTessellation
        << ", \"tessellation_optimization\": " << t.tessellationOptimization
        << ", \"mesh_construction\": " << t.meshConstruction << ", \"barycentric\": " << t.barycentric
