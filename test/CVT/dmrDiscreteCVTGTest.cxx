@@ -340,6 +340,170 @@ TEST(DiscreteCVT, ResultDoesNotDependOnTheThreader)
   EXPECT_DOUBLE_EQ(serial.GetEnergy(), parallel.GetEnergy());
 }
 
+/** A density like the registration's: a sharp ridge along a sphere (a circle in 2D) of the given radius, centred in
+ * the grid and moved by shift x (k + 1) along axis k, on a random floor. */
+template <unsigned int D>
+std::vector<float>
+RidgeDensity(const itk::dmr::Grid<D> & grid, double radius, double shift, uint32_t seed)
+{
+  auto density = itk::dmr::test::RandomDensity(grid.numberOfPixels, seed, 0.05f, 0.15f);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto x = itk::dmr::test::PixelPosition<D>(grid, p);
+    double     r2 = 0.0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const double c = 0.5 * grid.spacing[k] * static_cast<double>(grid.size[k] - 1) + shift * (k + 1);
+      r2 += (x[k] - c) * (x[k] - c);
+    }
+    const double d = std::sqrt(r2) - radius;
+    density[p] += static_cast<float>(20.0 * std::exp(-d * d / (2.0 * 1.5 * 1.5)));
+  }
+  return density;
+}
+
+/** Runs Optimize(0, sweepsPerCall) callCount times from the same labels in every sweep mode; expects the active-list
+ * modes to give the full scan's labels, energy and statistics exactly. Returns the full scan's totals. */
+template <unsigned int D>
+typename itk::dmr::DiscreteCVT<D>::OptimizeResult
+ExpectModesAgree(const itk::dmr::Grid<D> &    grid,
+                 const std::vector<float> &   density,
+                 const std::vector<int32_t> & start,
+                 size_t                       numberOfCells,
+                 size_t                       sweepsPerCall,
+                 size_t                       callCount,
+                 itk::MultiThreaderBase *     threader)
+{
+  using CVTType = itk::dmr::DiscreteCVT<D>;
+  using ModeType = typename CVTType::SweepMode;
+  const ModeType modes[] = { ModeType::FullScan, ModeType::Auto, ModeType::ActiveScan, ModeType::ActiveGather };
+  std::vector<std::vector<int32_t>>  labels;
+  std::vector<std::vector<double>>   energies;
+  std::vector<std::array<size_t, 3>> counts;
+  for (const ModeType mode : modes)
+  {
+    CVTType cvt;
+    cvt.SetSweepMode(mode);
+    EXPECT_EQ(cvt.GetSweepMode(), mode);
+    cvt.SetDensity(grid, density.data(), threader);
+    cvt.SetLabels(start.data(), numberOfCells);
+    std::vector<double>   energy;
+    std::array<size_t, 3> total{ 0, 0, 0 };
+    for (size_t call = 0; call < callCount; ++call)
+    {
+      const auto result = cvt.Optimize(0.0, sweepsPerCall);
+      energy.push_back(result.energyAfter);
+      total[0] += result.sweeps;
+      total[1] += result.swaps;
+      total[2] += result.rejectedBatches;
+    }
+    labels.push_back(cvt.GetLabels());
+    energies.push_back(energy);
+    counts.push_back(total);
+  }
+  for (size_t m = 1; m < labels.size(); ++m)
+  {
+    EXPECT_TRUE(labels[m] == labels[0]) << "mode " << m << " gives other labels than the full scan";
+    EXPECT_EQ(energies[m], energies[0]) << "mode " << m; // bit for bit: same swaps, committed in the same order
+    EXPECT_EQ(counts[m], counts[0]) << "mode " << m << " (sweeps, swaps, rejected batches)";
+  }
+  typename CVTType::OptimizeResult full;
+  full.sweeps = counts[0][0];
+  full.swaps = counts[0][1];
+  full.rejectedBatches = counts[0][2];
+  return full;
+}
+
+TEST(DiscreteCVT, ActiveListGivesTheFullScanLabels2D)
+{
+  const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ 96, 80 }, std::array<double, 2>{ 1.0, 1.3 });
+  const auto               density = RidgeDensity<2>(grid, 30.0, 0.0, 21u);
+  itk::dmr::DiscreteCVT<2> cvt;
+  cvt.SetDensity(grid, density.data(), nullptr);
+  cvt.ContractionInitialize(40, 1);
+  const auto contracted = cvt.GetLabels();
+  // from the contraction to convergence, in one call and one sweep per call
+  const auto cold = ExpectModesAgree<2>(grid, density, contracted, 40, 1000, 1, nullptr);
+  EXPECT_GT(cold.swaps, 1000u);
+  ExpectModesAgree<2>(grid, density, contracted, 40, 1, 60, nullptr);
+  // warm starts (paper 4.7) on a moving ridge, as the registration does
+  cvt.Optimize(0.0, 1000);
+  auto   labels = cvt.GetLabels();
+  size_t swaps = 0;
+  for (int step = 1; step <= 4; ++step)
+  {
+    const auto moved = RidgeDensity<2>(grid, 30.0 + 0.7 * step, 0.6 * step, 21u + step);
+    swaps += ExpectModesAgree<2>(grid, moved, labels, 40, 1000, 1, nullptr).swaps;
+    itk::dmr::DiscreteCVT<2> next;
+    next.SetDensity(grid, moved.data(), nullptr);
+    next.SetLabels(labels.data(), 40);
+    next.Optimize(0.0, 1000);
+    labels = next.GetLabels();
+  }
+  EXPECT_GT(swaps, 0u);
+}
+
+TEST(DiscreteCVT, ActiveListGivesTheFullScanLabelsWhenBatchesAreHalved)
+{
+  // heavy-tailed densities (a few pixels carry most of the mass) make joint commits raise the energy now and then,
+  // so batches are halved and proposals rejected, which the active lists must re-evaluate
+  std::mt19937 engine(2015u);
+  size_t       rejected = 0;
+  for (int trial = 0; trial < 60 && !::testing::Test::HasFailure(); ++trial)
+  {
+    const itk::dmr::Grid<2> grid(
+      std::array<size_t, 2>{ 12 + static_cast<size_t>(trial % 20), 10 + static_cast<size_t>(trial % 15) },
+      std::array<double, 2>{ 1.0, 1.0 });
+    std::vector<float> density(grid.numberOfPixels);
+    for (auto & d : density)
+    {
+      const double u = static_cast<double>(engine() >> 8) / 16777216.0; // portable uniform [0, 1)
+      d = static_cast<float>(100.0 * u * u * u * u + 0.01);
+    }
+    const size_t             numberOfCells = 2 + static_cast<size_t>(trial % 6);
+    itk::dmr::DiscreteCVT<2> cvt;
+    cvt.SetDensity(grid, density.data(), nullptr);
+    cvt.ContractionInitialize(numberOfCells, 1);
+    const auto contracted = cvt.GetLabels();
+    rejected += ExpectModesAgree<2>(grid, density, contracted, numberOfCells, 1000, 1, nullptr).rejectedBatches;
+  }
+  EXPECT_GT(rejected, 0u) << "no batch was halved: the test did not exercise the rejected proposals";
+}
+
+TEST(DiscreteCVT, ActiveListGivesTheFullScanLabels3D)
+{
+  const itk::dmr::Grid<3>  grid(std::array<size_t, 3>{ 28, 24, 20 }, std::array<double, 3>{ 1.0, 1.2, 1.5 });
+  const auto               density = RidgeDensity<3>(grid, 9.0, 0.0, 31u);
+  itk::dmr::DiscreteCVT<3> cvt;
+  cvt.SetDensity(grid, density.data(), nullptr);
+  cvt.ContractionInitialize(30, 2);
+  const auto contracted = cvt.GetLabels();
+  const auto cold = ExpectModesAgree<3>(grid, density, contracted, 30, 1000, 1, nullptr);
+  EXPECT_GT(cold.swaps, 1000u);
+  ExpectModesAgree<3>(grid, density, contracted, 30, 1, 40, nullptr);
+  cvt.Optimize(0.0, 1000);
+  const auto labels = cvt.GetLabels();
+  const auto moved = RidgeDensity<3>(grid, 9.5, 0.7, 32u);
+  const auto warm = ExpectModesAgree<3>(grid, moved, labels, 30, 1000, 1, nullptr);
+  EXPECT_GT(warm.swaps, 0u);
+}
+
+TEST(DiscreteCVT, ActiveListGivesTheFullScanLabelsWithThreadsAndManyChunks)
+{
+  // 2000 cells on 384x320: each colour's scan list is long enough to be split into several chunks
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 384, 320 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto              density = RidgeDensity<2>(grid, 100.0, 0.0, 41u);
+  auto                    threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(2);
+  itk::dmr::DiscreteCVT<2> cvt;
+  cvt.SetDensity(grid, density.data(), nullptr);
+  cvt.ContractionInitialize(2000, 1);
+  const auto contracted = cvt.GetLabels();
+  const auto result = ExpectModesAgree<2>(grid, density, contracted, 2000, 12, 1, threader);
+  EXPECT_GT(result.swaps, 10000u);
+}
+
 TEST(DiscreteCVT, LocalRemovalTestImpliesTheCellStaysConnected)
 {
   const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 24, 20 }, spacing2D);

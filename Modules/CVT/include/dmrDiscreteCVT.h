@@ -25,6 +25,7 @@
 #include <numeric>
 #include <algorithm>
 #include <cstdint>
+#include <limits>
 
 namespace itk
 {
@@ -86,12 +87,38 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
  *    Hence the energy never increases, and the result is deterministic for a given input.
  * Sweeps repeat until a sweep lowers the energy by no more than Epsilon x E (Epsilon = 0: until no swap is
  * accepted), or MaximumNumberOfSweeps is reached.
+ *
+ * Active lists (which pixels a sub-sweep evaluates). A pixel's proposal is a function of the labels of its 3^D
+ * neighbourhood and of the masses and centroids of its own cell and of its face neighbours' cells; interior pixels
+ * (no face neighbour in another cell) never propose. A sub-sweep therefore evaluates only the boundary pixels of
+ * its colour whose inputs may have changed since the colour's previous sub-sweep, i.e. that are
+ *  - Changed: a label of the 3^D neighbourhood changed (set around every committed swap), or the pixel proposed a
+ *    swap last time (committed or rejected by the halving), or
+ *  - next to a changed cell: its own or a face neighbour's cell has a stamp (the sub-sweep of the last commit
+ *    that changed the cell's mass or centroid) in the window since that sub-sweep's commit.
+ * A pixel whose last evaluation found its removal disconnecting its cell (Blocked) is skipped until it is Changed:
+ * the local connectivity test depends on the neighbourhood's labels only. Every skipped pixel would repeat its
+ * last outcome, no proposal, so the proposals are those of the full scan; they are committed in pixel order like
+ * the full scan's, so the labels and the energy are identical to it, bit for bit (SweepMode::FullScan runs the
+ * reference rule; the tests compare the modes). Two ways to find those pixels, picked per sub-sweep by their
+ * estimated work:
+ *  - scan: each colour keeps a sorted list of its boundary pixels; every entry is checked (Changed, cell stamps),
+ *    in parallel; entries found interior leave the list. Cheapest when many cells changed;
+ *  - gather: each cell keeps a list of its boundary pixels per colour. For every changed cell, its own pixels of
+ *    the colour and the pixels face-adjacent to its pixels of the colours that differ in one axis are queued
+ *    (with the Changed pixels, always queued), then the queue is evaluated in parallel. Cheapest when few changed.
+ * After each commit, the moved pixels' neighbourhoods are queued as Changed and the moved pixels and their face
+ * neighbours, the only pixels whose boundary status can change, are listed where they are boundary pixels and not
+ * listed yet (a colour's new entries wait in a pending list, merged in sorted before its next scan). Stale entries
+ * (pixels that left the cell or the boundary) are dropped when a list is read, or compacted once a gather list has
+ * doubled. Memory: one state byte per pixel, two 4-byte entries per boundary pixel, one stamp per cell.
  * \ingroup DynamicMeshRegistration */
 template <unsigned int D>
 class DiscreteCVT
 {
 public:
   using GridType = Grid<D>;
+  using IndexType = std::array<int64_t, D>;
   using LabelType = int32_t;
 
   struct Proposal
@@ -148,14 +175,32 @@ public:
     return m_Energy;
   }
 
+  /** Which pixels a sub-sweep evaluates; every mode gives the same proposals, hence the same labels and energy
+   * (see class comment). Auto (default): the active list, scanned or gathered from the changed cells, whichever
+   * is estimated cheaper for the sub-sweep; ActiveScan, ActiveGather: always that one; FullScan: every pixel of
+   * the colour, the reference rule. The forced modes are for tests and benchmarks. */
+  enum class SweepMode
+  {
+    Auto,
+    ActiveScan,
+    ActiveGather,
+    FullScan
+  };
+  void
+  SetSweepMode(SweepMode mode)
+  {
+    m_SweepMode = mode;
+  }
+  SweepMode
+  GetSweepMode() const
+  {
+    return m_SweepMode;
+  }
+
   void
   Position(size_t p, double * x) const
   {
-    const auto idx = m_Grid.Index(p);
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      x[k] = static_cast<double>(idx[k]) * m_Grid.spacing[k];
-    }
+    Position(m_Grid.Index(p), x);
   }
 
   /** Greedy least-cost pair contraction (paper 4.4) down to numberOfCells clusters. */
@@ -422,8 +467,13 @@ public:
   bool
   RemovalKeepsCellConnected(size_t p) const
   {
-    const LabelType label = m_Labels[p];
-    const auto      idx = m_Grid.Index(p);
+    return RemovalKeepsCellConnected(p, m_Grid.Index(p));
+  }
+  /** The same, with p's grid index given. */
+  bool
+  RemovalKeepsCellConnected(size_t p, const IndexType & idx) const
+  {
+    const LabelType        label = m_Labels[p];
     constexpr unsigned int N = NeighbourhoodSize;
     bool                   member[N];
     for (unsigned int q = 0; q < N; ++q)
@@ -493,56 +543,11 @@ public:
   bool
   ProposeSwap(size_t p, Proposal & out) const
   {
-    const LabelType      own = m_Labels[p];
-    const auto           idx = m_Grid.Index(p);
-    LabelType            candidates[2 * D];
-    unsigned int         nc = 0;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      for (int s = -1; s <= 1; s += 2)
-      {
-        const int64_t c = idx[k] + s;
-        if (c < 0 || c >= static_cast<int64_t>(m_Grid.size[k]))
-        {
-          continue;
-        }
-        const LabelType l = m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + s * static_cast<int64_t>(m_Grid.stride[k]))];
-        if (l != own && std::find(candidates, candidates + nc, l) == candidates + nc)
-        {
-          candidates[nc++] = l;
-        }
-      }
-    }
-    if (nc == 0)
-    {
-      return false; // interior pixel
-    }
-    double x[D];
-    Position(p, x);
-    const double w = m_Density[p];
-    const double mi = m_Mass[own];
-    if (!(mi - w > 0.0))
-    {
-      return false;
-    }
-    double    best = -m_SwapTolerance * w;
-    LabelType bestLabel = own;
-    for (unsigned int c = 0; c < nc; ++c)
-    {
-      const LabelType j = candidates[c];
-      const double    dE = SwapEnergyChange<D>(w, x, mi, &m_Centroid[own * D], m_Mass[j], &m_Centroid[j * D]);
-      if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
-      {
-        best = dE;
-        bestLabel = j;
-      }
-    }
-    if (bestLabel == own || !RemovalKeepsCellConnected(p))
-    {
-      return false;
-    }
-    out = { static_cast<uint64_t>(p), bestLabel, -best };
-    return true;
+    const auto      idx = m_Grid.Index(p);
+    const LabelType own = m_Labels[p];
+    LabelType       candidates[2 * D];
+    const unsigned  nc = NeighbourCells(p, idx, own, candidates);
+    return nc > 0 && BestSwap(p, idx, own, candidates, nc, out); // nc == 0: interior pixel
   }
 
   /** Paper Algorithm 1 with the parity-colour two-phase rule (see class comment). */
@@ -564,15 +569,35 @@ public:
       h2 = std::min(h2, m_Grid.spacing[k] * m_Grid.spacing[k]);
     }
     m_SwapTolerance = 1e-9 * h2;
+    // the active lists hold 32-bit pixel indices; a larger grid (beyond any use here) takes the full scan
+    const bool active =
+      m_SweepMode != SweepMode::FullScan && m_Grid.numberOfPixels <= std::numeric_limits<uint32_t>::max();
+    if (active)
+    {
+      BuildActiveLists();
+    }
 
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
       const double before = m_Energy;
       size_t       swapsThisSweep = 0;
-      for (unsigned int colour = 0; colour < (1u << D); ++colour)
+      for (unsigned int colour = 0; colour < NumberOfColours; ++colour)
       {
-        CollectProposals(colour);
-        swapsThisSweep += CommitProposals(result);
+        if (active)
+        {
+          CollectActiveProposals(colour);
+        }
+        else
+        {
+          CollectProposals(colour);
+        }
+        const size_t committed = CommitProposals(result);
+        if (active && committed > 0)
+        {
+          UpdateActiveLists(committed);
+        }
+        swapsThisSweep += committed;
+        ++m_SubSweep;
       }
       ++result.sweeps;
       result.swaps += swapsThisSweep;
@@ -588,6 +613,133 @@ public:
 private:
   static constexpr unsigned int NeighbourhoodSize = D == 2 ? 9 : 27;
   static constexpr unsigned int Centre = NeighbourhoodSize / 2;
+
+  static constexpr unsigned int NumberOfColours = 1u << D;
+  // m_PixelState bits
+  static constexpr uint8_t InColourList = 1; // in its colour's scan list (or pending list)
+  static constexpr uint8_t InCellList = 2;   // in its cell's gather list of its colour
+  static constexpr uint8_t Queued = 4;       // in its colour's queue
+  static constexpr uint8_t Changed = 8;      // a label of its 3^D neighbourhood changed, or it proposed (queued)
+  static constexpr uint8_t Blocked = 16;     // its removal disconnects its cell (valid while not Changed)
+  static constexpr uint8_t Seen = 32;        // scratch: de-duplicates a gather list while it is compacted
+  // a scan visits every entry of its colour's list (in parallel, in memory order), a gathering the gather-list
+  // entries of the changed cells in 1 + D colours (one thread), then evaluates what it queued (in parallel).
+  // Measured per sub-sweep on the 3D benchmark (benchmarks/cvt): a scan costs about the same whatever it
+  // evaluates, a gathering about as much as a scan when it visits as many entries: gather below that.
+
+  void
+  Position(const IndexType & idx, double * x) const
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      x[k] = static_cast<double>(idx[k]) * m_Grid.spacing[k];
+    }
+  }
+
+  static unsigned int
+  Colour(const IndexType & idx)
+  {
+    unsigned int colour = 0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      colour |= static_cast<unsigned int>(idx[k] & 1) << k;
+    }
+    return colour;
+  }
+
+  /** The distinct labels other than own among the face neighbours of p (at idx), in a fixed order; returns their
+   * number (0: p is an interior pixel). */
+  unsigned int
+  NeighbourCells(size_t p, const IndexType & idx, LabelType own, LabelType * candidates) const
+  {
+    unsigned int nc = 0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      for (int s = -1; s <= 1; s += 2)
+      {
+        const int64_t c = idx[k] + s;
+        if (c < 0 || c >= static_cast<int64_t>(m_Grid.size[k]))
+        {
+          continue;
+        }
+        const LabelType l =
+          m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + s * static_cast<int64_t>(m_Grid.stride[k]))];
+        bool known = l == own;
+        for (unsigned int j = 0; j < nc; ++j)
+        {
+          known = known || candidates[j] == l;
+        }
+        if (!known)
+        {
+          candidates[nc++] = l;
+        }
+      }
+    }
+    return nc;
+  }
+
+  /** True when a face neighbour of p (at idx) has another label. */
+  bool
+  IsBoundary(size_t p, const IndexType & idx) const
+  {
+    const LabelType own = m_Labels[p];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      if ((idx[k] > 0 && m_Labels[p - m_Grid.stride[k]] != own) ||
+          (idx[k] + 1 < static_cast<int64_t>(m_Grid.size[k]) && m_Labels[p + m_Grid.stride[k]] != own))
+      {
+        return true;
+      }
+    }
+    return false;
+  }
+
+  /** The most negative single-swap change (Eq. 23) of p over its candidate cells, if below the rounding guard and
+   * the removal keeps p's cell connected. */
+  bool
+  BestSwap(size_t            p,
+           const IndexType & idx,
+           LabelType         own,
+           const LabelType * candidates,
+           unsigned int      nc,
+           Proposal &        out,
+           bool *            disconnects = nullptr) const
+  {
+    double x[D];
+    Position(idx, x);
+    const double w = m_Density[p];
+    const double mi = m_Mass[own];
+    if (!(mi - w > 0.0))
+    {
+      return false;
+    }
+    double    best = -m_SwapTolerance * w;
+    LabelType bestLabel = own;
+    for (unsigned int c = 0; c < nc; ++c)
+    {
+      const LabelType j = candidates[c];
+      const double    dE = SwapEnergyChange<D>(w, x, mi, &m_Centroid[own * D], m_Mass[j], &m_Centroid[j * D]);
+      if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
+      {
+        best = dE;
+        bestLabel = j;
+      }
+    }
+    if (bestLabel == own)
+    {
+      return false;
+    }
+    if (!RemovalKeepsCellConnected(p, idx))
+    {
+      if (disconnects)
+      {
+        *disconnects = true;
+      }
+      return false;
+    }
+    out = { static_cast<uint64_t>(p), bestLabel, -best };
+    return true;
+  }
 
   void
   BuildNeighbourhood()
@@ -613,6 +765,12 @@ private:
       if (manhattan == 1)
       {
         m_FaceNeighbours[f++] = q;
+      }
+      m_FaceOrCentre[q] = manhattan <= 1;
+      m_LinearOffsets[q] = 0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        m_LinearOffsets[q] += m_Offsets[q][k] * static_cast<int64_t>(m_Grid.stride[k]);
       }
       for (unsigned int o = 0; o < NeighbourhoodSize; ++o)
       {
@@ -669,6 +827,380 @@ private:
     for (size_t c = 0; c < nChunks; ++c)
     {
       m_Proposals.insert(m_Proposals.end(), m_ChunkProposals[c].begin(), m_ChunkProposals[c].end());
+    }
+  }
+
+  /** Active lists from scratch: every boundary pixel in its colour's scan list and its cell's gather list, every
+   * cell stamped inside the first window of every colour (so the first sweep evaluates every boundary pixel). */
+  void
+  BuildActiveLists()
+  {
+    const size_t n = m_Grid.numberOfPixels;
+    const size_t nCells = m_Mass.size();
+    m_PixelState.assign(n, 0);
+    m_CellLists.resize(nCells * NumberOfColours);
+    for (auto & list : m_CellLists)
+    {
+      list.clear();
+    }
+    m_CellListCompactedSize.assign(nCells * NumberOfColours, 0);
+    for (unsigned int colour = 0; colour < NumberOfColours; ++colour)
+    {
+      m_ScanList[colour].clear();
+      m_PendingList[colour].clear();
+      m_Queue[colour].clear();
+    }
+    m_SubSweep = NumberOfColours + 1;
+    m_CellStamp.assign(nCells, NumberOfColours); // >= the window start (1 + colour) of the first sweep
+    IndexType idx{};
+    for (size_t p = 0; p < n; ++p, Increment(idx))
+    {
+      if (IsBoundary(p, idx))
+      {
+        const unsigned int colour = Colour(idx);
+        m_PixelState[p] = InColourList | InCellList;
+        m_ScanList[colour].push_back(static_cast<uint32_t>(p)); // in pixel order
+        m_CellLists[static_cast<size_t>(m_Labels[p]) * NumberOfColours + colour].push_back(static_cast<uint32_t>(p));
+      }
+    }
+    for (size_t l = 0; l < m_CellLists.size(); ++l)
+    {
+      m_CellListCompactedSize[l] = m_CellLists[l].size();
+    }
+  }
+
+  /** Next grid index in linear order. */
+  void
+  Increment(IndexType & idx) const
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      if (++idx[k] < static_cast<int64_t>(m_Grid.size[k]) || k + 1 == D)
+      {
+        return;
+      }
+      idx[k] = 0;
+    }
+  }
+
+  /** Removes from gather list l (cell's list of one colour) the pixels that left the cell, duplicates (a pixel that
+   * left and came back) and interior pixels (no longer InCellList); calls visit(p) for each remaining pixel. */
+  template <typename TVisit>
+  void
+  CompactCellList(size_t l, LabelType cell, TVisit && visit)
+  {
+    auto & list = m_CellLists[l];
+    size_t kept = 0;
+    for (size_t i = 0; i < list.size(); ++i)
+    {
+      const size_t p = list[i];
+      if (m_Labels[p] != cell || (m_PixelState[p] & Seen))
+      {
+        continue;
+      }
+      if (!IsBoundary(p, m_Grid.Index(p)))
+      {
+        m_PixelState[p] &= static_cast<uint8_t>(~InCellList); // listed again when it becomes a boundary pixel
+        continue;
+      }
+      m_PixelState[p] |= Seen;
+      list[kept++] = static_cast<uint32_t>(p);
+      visit(p);
+    }
+    list.resize(kept);
+    m_CellListCompactedSize[l] = kept;
+    for (const uint32_t p : list)
+    {
+      m_PixelState[p] &= static_cast<uint8_t>(~Seen);
+    }
+  }
+
+  /** Queues pixel p (of the colour of queue) for evaluation in its colour's next sub-sweep, flagged changed. */
+  void
+  Enqueue(size_t p, std::vector<uint32_t> & queue, uint8_t flags)
+  {
+    uint8_t & state = m_PixelState[p];
+    if (!(state & Queued))
+    {
+      queue.push_back(static_cast<uint32_t>(p));
+    }
+    state |= Queued | flags;
+  }
+
+  /** BestSwap for the active paths: skips p while its removal is known to disconnect its cell (the local test
+   * depends on the labels of its 3^D neighbourhood only), and records the outcome of that test. Writes only p's
+   * state. */
+  bool
+  ActiveSwap(size_t            p,
+             const IndexType & idx,
+             LabelType         own,
+             const LabelType * candidates,
+             unsigned int      nc,
+             Proposal &        out)
+  {
+    uint8_t & state = m_PixelState[p];
+    if ((state & (Blocked | Changed)) == Blocked)
+    {
+      return false;
+    }
+    bool       blocked = false;
+    const bool proposed = BestSwap(p, idx, own, candidates, nc, out, &blocked);
+    state = blocked ? (state | Blocked) : (state & static_cast<uint8_t>(~Blocked));
+    return proposed;
+  }
+
+  /** Phase 1 on the active lists of one colour (see class comment): the proposals of the pixels whose inputs may
+   * have changed since the colour's previous sub-sweep, sorted by pixel like the full scan's. */
+  void
+  CollectActiveProposals(unsigned int colour)
+  {
+    // the colour's previous sub-sweep proposed before its commit, which is stamped windowStart
+    const uint64_t windowStart = m_SubSweep - NumberOfColours;
+    const size_t   nCells = m_Mass.size();
+    size_t         gatherWork = m_Queue[colour].size();
+    m_ChangedCells.clear();
+    for (size_t a = 0; a < nCells; ++a)
+    {
+      if (m_CellStamp[a] >= windowStart)
+      {
+        m_ChangedCells.push_back(static_cast<LabelType>(a));
+        gatherWork += m_CellLists[a * NumberOfColours + colour].size();
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          gatherWork += m_CellLists[a * NumberOfColours + (colour ^ (1u << k))].size();
+        }
+      }
+    }
+    const size_t scanWork = m_ScanList[colour].size() + m_PendingList[colour].size();
+    m_Proposals.clear();
+    if (m_SweepMode == SweepMode::ActiveScan || (m_SweepMode == SweepMode::Auto && gatherWork >= scanWork))
+    {
+      ScanColourList(colour, windowStart);
+    }
+    else
+    {
+      GatherChangedCells(colour);
+      EvaluateQueue(colour);
+      std::sort(m_Proposals.begin(),
+                m_Proposals.end(),
+                [](const Proposal & x, const Proposal & y) { return x.pixel < y.pixel; });
+    }
+    // the evaluated pixels are clean now, except the proposers, evaluated again next time (committed or not)
+    auto & queue = m_Queue[colour];
+    for (const uint32_t p : queue)
+    {
+      m_PixelState[p] &= static_cast<uint8_t>(~(Queued | Changed));
+    }
+    queue.clear();
+    for (const Proposal & prop : m_Proposals)
+    {
+      Enqueue(prop.pixel, queue, Changed);
+    }
+  }
+
+  /** Scan mode: merges the pending pixels into the colour's scan list (sorted), then evaluates the listed pixels
+   * that are dirty or whose own or face neighbours' cell changed in the window, in parallel and in pixel order,
+   * dropping the pixels found interior from the list. */
+  void
+  ScanColourList(unsigned int colour, uint64_t windowStart)
+  {
+    auto & list = m_ScanList[colour];
+    auto & pending = m_PendingList[colour];
+    if (!pending.empty())
+    {
+      std::sort(pending.begin(), pending.end());
+      m_MergeBuffer.resize(list.size() + pending.size());
+      std::merge(list.begin(), list.end(), pending.begin(), pending.end(), m_MergeBuffer.begin());
+      list.swap(m_MergeBuffer);
+      pending.clear();
+    }
+    const size_t n = list.size();
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 8192));
+    const size_t chunk = (n + nChunks - 1) / nChunks;
+    if (m_ChunkProposals.size() < nChunks)
+    {
+      m_ChunkProposals.resize(nChunks);
+    }
+    m_ChunkKept.resize(nChunks);
+    ParallelForChunkIds(m_Threader,
+                        nChunks,
+                        [&](size_t c)
+                        {
+                          auto &       proposals = m_ChunkProposals[c];
+                          const size_t begin = std::min(n, c * chunk), end = std::min(n, begin + chunk);
+                          size_t       kept = begin;
+                          proposals.clear();
+                          for (size_t i = begin; i < end; ++i)
+                          {
+                            const size_t    p = list[i];
+                            const auto      idx = m_Grid.Index(p);
+                            const LabelType own = m_Labels[p];
+                            LabelType       candidates[2 * D];
+                            const unsigned  nc = NeighbourCells(p, idx, own, candidates);
+                            if (nc == 0)
+                            {
+                              m_PixelState[p] &=
+                                static_cast<uint8_t>(~InColourList); // listed again when it becomes a boundary pixel
+                              continue;
+                            }
+                            list[kept++] = static_cast<uint32_t>(p);
+                            bool changed = (m_PixelState[p] & Changed) || m_CellStamp[own] >= windowStart;
+                            for (unsigned int j = 0; j < nc && !changed; ++j)
+                            {
+                              changed = m_CellStamp[candidates[j]] >= windowStart;
+                            }
+                            Proposal prop;
+                            if (changed && ActiveSwap(p, idx, own, candidates, nc, prop))
+                            {
+                              proposals.push_back(prop);
+                            }
+                          }
+                          m_ChunkKept[c] = kept;
+                        });
+    // close the gaps left by the dropped pixels; concatenate the proposals in chunk (= pixel) order
+    size_t size = 0;
+    for (size_t c = 0; c < nChunks; ++c)
+    {
+      const size_t begin = std::min(n, c * chunk);
+      if (size < begin)
+      {
+        std::copy(list.begin() + begin, list.begin() + m_ChunkKept[c], list.begin() + size);
+      }
+      size += m_ChunkKept[c] - begin;
+      m_Proposals.insert(m_Proposals.end(), m_ChunkProposals[c].begin(), m_ChunkProposals[c].end());
+    }
+    list.resize(size);
+  }
+
+  /** Gather mode, step 1: queue the pixels of the colour that a cell change of the window may affect: the cell's
+   * own boundary pixels, and the pixels of other cells face-adjacent to its boundary pixels (found from the
+   * cell's gather lists of the colours that differ in one axis). */
+  void
+  GatherChangedCells(unsigned int colour)
+  {
+    auto & queue = m_Queue[colour];
+    for (const LabelType cell : m_ChangedCells)
+    {
+      const size_t a = static_cast<size_t>(cell);
+      CompactCellList(a * NumberOfColours + colour, cell, [&](size_t p) { Enqueue(p, queue, 0); });
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        const int64_t last = static_cast<int64_t>(m_Grid.size[k]) - 1;
+        const size_t  stride = m_Grid.stride[k];
+        for (const uint32_t q : m_CellLists[a * NumberOfColours + (colour ^ (1u << k))])
+        {
+          if (m_Labels[q] != cell)
+          {
+            continue; // stale entry (dropped when its list is compacted)
+          }
+          const int64_t i = static_cast<int64_t>((q / stride) % m_Grid.size[k]);
+          if (i > 0 && m_Labels[q - stride] != cell)
+          {
+            Enqueue(q - stride, queue, 0);
+          }
+          if (i < last && m_Labels[q + stride] != cell)
+          {
+            Enqueue(q + stride, queue, 0);
+          }
+        }
+      }
+    }
+  }
+
+  /** Gather mode, step 2: the proposals of the queued pixels (parallel; each pixel is queued once). */
+  void
+  EvaluateQueue(unsigned int colour)
+  {
+    const auto & queue = m_Queue[colour];
+    const size_t n = queue.size();
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 4096));
+    const size_t chunk = (n + nChunks - 1) / nChunks;
+    if (m_ChunkProposals.size() < nChunks)
+    {
+      m_ChunkProposals.resize(nChunks);
+    }
+    ParallelForChunkIds(m_Threader,
+                        nChunks,
+                        [&](size_t c)
+                        {
+                          auto & proposals = m_ChunkProposals[c];
+                          proposals.clear();
+                          const size_t end = std::min(n, (c + 1) * chunk);
+                          for (size_t i = c * chunk; i < end; ++i)
+                          {
+                            const size_t    p = queue[i];
+                            const auto      idx = m_Grid.Index(p);
+                            const LabelType own = m_Labels[p];
+                            LabelType       candidates[2 * D];
+                            const unsigned  nc = NeighbourCells(p, idx, own, candidates);
+                            Proposal        prop;
+                            if (nc > 0 && ActiveSwap(p, idx, own, candidates, nc, prop))
+                            {
+                              proposals.push_back(prop);
+                            }
+                          }
+                        });
+    for (size_t c = 0; c < nChunks; ++c)
+    {
+      m_Proposals.insert(m_Proposals.end(), m_ChunkProposals[c].begin(), m_ChunkProposals[c].end());
+    }
+  }
+
+  /** After committing proposals [0, count): stamp the changed cells, queue the 3^D neighbourhoods of the moved
+   * pixels, and list the moved pixels and their face neighbours that are boundary pixels where they are not
+   * listed. No two committed pixels lie in each other's neighbourhood (they have one colour), so each is handled
+   * on its own. */
+  void
+  UpdateActiveLists(size_t count)
+  {
+    for (LabelType c : m_TouchedList)
+    {
+      m_CellStamp[c] = m_SubSweep;
+    }
+    for (size_t i = 0; i < count; ++i)
+    {
+      const size_t p = m_Proposals[i].pixel;
+      const auto   idx = m_Grid.Index(p);
+      m_PixelState[p] &= static_cast<uint8_t>(~InCellList); // its entry is in its former cell's gather list
+      for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
+      {
+        IndexType nidx;
+        bool      inside = true;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          nidx[k] = idx[k] + m_Offsets[q][k];
+          inside = inside && nidx[k] >= 0 && nidx[k] < static_cast<int64_t>(m_Grid.size[k]);
+        }
+        if (!inside)
+        {
+          continue;
+        }
+        const size_t       r = static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q]);
+        const unsigned int colour = Colour(nidx);
+        Enqueue(r, m_Queue[colour], Changed);
+        const uint8_t state = m_PixelState[r];
+        if (!m_FaceOrCentre[q] || (state & (InColourList | InCellList)) == (InColourList | InCellList) ||
+            !IsBoundary(r, nidx))
+        {
+          continue;
+        }
+        if (!(state & InColourList))
+        {
+          m_PixelState[r] |= InColourList;
+          m_PendingList[colour].push_back(static_cast<uint32_t>(r));
+        }
+        if (!(state & InCellList))
+        {
+          m_PixelState[r] |= InCellList;
+          const LabelType cell = m_Labels[r];
+          const size_t    l = static_cast<size_t>(cell) * NumberOfColours + colour;
+          m_CellLists[l].push_back(static_cast<uint32_t>(r));
+          if (m_CellLists[l].size() > 2 * m_CellListCompactedSize[l] + 64)
+          {
+            CompactCellList(l, cell, [](size_t) {}); // bounds the stale entries of lists that are not gathered
+          }
+        }
+      }
     }
   }
 
@@ -770,25 +1302,40 @@ private:
     return count;
   }
 
-  GridType                             m_Grid;
-  const float *                        m_Density{ nullptr };
-  MultiThreaderBase *                  m_Threader{ nullptr };
-  std::vector<LabelType>               m_Labels;
-  std::vector<double>                  m_Mass;
-  std::vector<double>                  m_Centroid;
-  double                               m_Energy{ 0.0 };
-  double                               m_SwapTolerance{ 0.0 };
-  int                                  m_Offsets[NeighbourhoodSize][D];
-  unsigned int                         m_FaceNeighbours[2 * D];
-  unsigned int                         m_Adjacency[NeighbourhoodSize][2 * D];
-  unsigned int                         m_AdjacencyCount[NeighbourhoodSize];
-  std::vector<std::vector<Proposal>>   m_ChunkProposals;
-  std::vector<Proposal>                m_Proposals;
-  std::vector<double>                  m_DeltaMass;
-  std::vector<double>                  m_DeltaMoment;
-  std::vector<double>                  m_DeltaSecond;
-  std::vector<uint8_t>                 m_Touched;
-  std::vector<LabelType>               m_TouchedList;
+  GridType                           m_Grid;
+  const float *                      m_Density{ nullptr };
+  MultiThreaderBase *                m_Threader{ nullptr };
+  std::vector<LabelType>             m_Labels;
+  std::vector<double>                m_Mass;
+  std::vector<double>                m_Centroid;
+  double                             m_Energy{ 0.0 };
+  double                             m_SwapTolerance{ 0.0 };
+  int                                m_Offsets[NeighbourhoodSize][D];
+  unsigned int                       m_FaceNeighbours[2 * D];
+  unsigned int                       m_Adjacency[NeighbourhoodSize][2 * D];
+  unsigned int                       m_AdjacencyCount[NeighbourhoodSize];
+  std::vector<std::vector<Proposal>> m_ChunkProposals;
+  std::vector<Proposal>              m_Proposals;
+  std::vector<double>                m_DeltaMass;
+  std::vector<double>                m_DeltaMoment;
+  std::vector<double>                m_DeltaSecond;
+  std::vector<uint8_t>               m_Touched;
+  std::vector<LabelType>             m_TouchedList;
+  SweepMode                          m_SweepMode{ SweepMode::Auto };
+  int64_t                            m_LinearOffsets[NeighbourhoodSize];
+  bool                               m_FaceOrCentre[NeighbourhoodSize];
+  // active lists (see class comment)
+  std::vector<uint8_t>                               m_PixelState;
+  std::array<std::vector<uint32_t>, NumberOfColours> m_ScanList;    // sorted
+  std::array<std::vector<uint32_t>, NumberOfColours> m_PendingList; // to merge into the scan list
+  std::vector<uint32_t>                              m_MergeBuffer;
+  std::vector<size_t>                                m_ChunkKept;
+  std::vector<std::vector<uint32_t>>                 m_CellLists; // gather lists, [cell * NumberOfColours + colour]
+  std::vector<size_t>                                m_CellListCompactedSize;
+  std::array<std::vector<uint32_t>, NumberOfColours> m_Queue;
+  std::vector<LabelType>                             m_ChangedCells;
+  std::vector<uint64_t>                              m_CellStamp;
+  uint64_t                                           m_SubSweep{ 0 };
 };
 } // namespace dmr
 } // namespace itk
