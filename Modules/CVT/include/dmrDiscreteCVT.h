@@ -110,8 +110,9 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
  * After each commit, the moved pixels' neighbourhoods are queued as Changed and the moved pixels and their face
  * neighbours, the only pixels whose boundary status can change, are listed where they are boundary pixels and not
  * listed yet (a colour's new entries wait in a pending list, merged in sorted before its next scan). Stale entries
- * (pixels that left the cell or the boundary) are dropped when a list is read, or compacted once a gather list has
- * doubled. Memory: one state byte per pixel, two 4-byte entries per boundary pixel, one stamp per cell.
+ * (pixels that left the cell or the boundary) are dropped by the scan, and from a gather list when it has doubled
+ * since it was last compacted. Memory: one state byte per pixel, two 4-byte entries per boundary pixel (and the
+ * stale ones), one stamp per cell.
  * \ingroup DynamicMeshRegistration */
 template <unsigned int D>
 class DiscreteCVT
@@ -652,27 +653,23 @@ private:
   unsigned int
   NeighbourCells(size_t p, const IndexType & idx, LabelType own, LabelType * candidates) const
   {
+    // branch-free: the order of the labels is data, a neighbour outside the grid reads p's own label
     unsigned int nc = 0;
     for (unsigned int k = 0; k < D; ++k)
     {
-      for (int s = -1; s <= 1; s += 2)
+      const size_t stride = m_Grid.stride[k];
+      const size_t lower = idx[k] > 0 ? p - stride : p;
+      const size_t upper = idx[k] + 1 < static_cast<int64_t>(m_Grid.size[k]) ? p + stride : p;
+      for (const size_t q : { lower, upper })
       {
-        const int64_t c = idx[k] + s;
-        if (c < 0 || c >= static_cast<int64_t>(m_Grid.size[k]))
-        {
-          continue;
-        }
-        const LabelType l =
-          m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + s * static_cast<int64_t>(m_Grid.stride[k]))];
-        bool known = l == own;
+        const LabelType l = m_Labels[q];
+        bool            known = l == own;
         for (unsigned int j = 0; j < nc; ++j)
         {
-          known = known || candidates[j] == l;
+          known |= candidates[j] == l;
         }
-        if (!known)
-        {
-          candidates[nc++] = l;
-        }
+        candidates[nc] = l;
+        nc += known ? 0u : 1u;
       }
     }
     return nc;
@@ -884,10 +881,9 @@ private:
   }
 
   /** Removes from gather list l (cell's list of one colour) the pixels that left the cell, duplicates (a pixel that
-   * left and came back) and interior pixels (no longer InCellList); calls visit(p) for each remaining pixel. */
-  template <typename TVisit>
+   * left and came back) and interior pixels (no longer InCellList). */
   void
-  CompactCellList(size_t l, LabelType cell, TVisit && visit)
+  CompactCellList(size_t l, LabelType cell)
   {
     auto & list = m_CellLists[l];
     size_t kept = 0;
@@ -905,7 +901,6 @@ private:
       }
       m_PixelState[p] |= Seen;
       list[kept++] = static_cast<uint32_t>(p);
-      visit(p);
     }
     list.resize(kept);
     m_CellListCompactedSize[l] = kept;
@@ -981,9 +976,9 @@ private:
     {
       GatherChangedCells(colour);
       EvaluateQueue(colour);
-      std::sort(m_Proposals.begin(),
-                m_Proposals.end(),
-                [](const Proposal & x, const Proposal & y) { return x.pixel < y.pixel; });
+      std::sort(m_Proposals.begin(), m_Proposals.end(), [](const Proposal & x, const Proposal & y) {
+        return x.pixel < y.pixel;
+      });
     }
     // the evaluated pixels are clean now, except the proposers, evaluated again next time (committed or not)
     auto & queue = m_Queue[colour];
@@ -1022,41 +1017,39 @@ private:
       m_ChunkProposals.resize(nChunks);
     }
     m_ChunkKept.resize(nChunks);
-    ParallelForChunkIds(m_Threader,
-                        nChunks,
-                        [&](size_t c)
-                        {
-                          auto &       proposals = m_ChunkProposals[c];
-                          const size_t begin = std::min(n, c * chunk), end = std::min(n, begin + chunk);
-                          size_t       kept = begin;
-                          proposals.clear();
-                          for (size_t i = begin; i < end; ++i)
-                          {
-                            const size_t    p = list[i];
-                            const auto      idx = m_Grid.Index(p);
-                            const LabelType own = m_Labels[p];
-                            LabelType       candidates[2 * D];
-                            const unsigned  nc = NeighbourCells(p, idx, own, candidates);
-                            if (nc == 0)
-                            {
-                              m_PixelState[p] &=
-                                static_cast<uint8_t>(~InColourList); // listed again when it becomes a boundary pixel
-                              continue;
-                            }
-                            list[kept++] = static_cast<uint32_t>(p);
-                            bool changed = (m_PixelState[p] & Changed) || m_CellStamp[own] >= windowStart;
-                            for (unsigned int j = 0; j < nc && !changed; ++j)
-                            {
-                              changed = m_CellStamp[candidates[j]] >= windowStart;
-                            }
-                            Proposal prop;
-                            if (changed && ActiveSwap(p, idx, own, candidates, nc, prop))
-                            {
-                              proposals.push_back(prop);
-                            }
-                          }
-                          m_ChunkKept[c] = kept;
-                        });
+    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+      auto &       proposals = m_ChunkProposals[c];
+      const size_t begin = std::min(n, c * chunk), end = std::min(n, begin + chunk);
+      size_t       kept = begin;
+      proposals.clear();
+      for (size_t i = begin; i < end; ++i)
+      {
+        const size_t    p = list[i];
+        const auto      idx = m_Grid.Index(p);
+        const LabelType own = m_Labels[p];
+        LabelType       candidates[2 * D];
+        const unsigned  nc = NeighbourCells(p, idx, own, candidates);
+        if (nc == 0)
+        {
+          // interior now: listed again when it becomes a boundary pixel
+          m_PixelState[p] &= static_cast<uint8_t>(~InColourList);
+          continue;
+        }
+        list[kept++] = static_cast<uint32_t>(p);
+        bool changed = (m_PixelState[p] & Changed) != 0; // without branches: their outcome is data
+        changed |= m_CellStamp[own] >= windowStart;
+        for (unsigned int j = 0; j < nc; ++j)
+        {
+          changed |= m_CellStamp[candidates[j]] >= windowStart;
+        }
+        Proposal prop;
+        if (changed && ActiveSwap(p, idx, own, candidates, nc, prop))
+        {
+          proposals.push_back(prop);
+        }
+      }
+      m_ChunkKept[c] = kept;
+    });
     // close the gaps left by the dropped pixels; concatenate the proposals in chunk (= pixel) order
     size_t size = 0;
     for (size_t c = 0; c < nChunks; ++c)
@@ -1082,7 +1075,14 @@ private:
     for (const LabelType cell : m_ChangedCells)
     {
       const size_t a = static_cast<size_t>(cell);
-      CompactCellList(a * NumberOfColours + colour, cell, [&](size_t p) { Enqueue(p, queue, 0); });
+      // stale and interior entries are queued too (the evaluation skips them): lists are compacted when they double
+      for (const uint32_t p : m_CellLists[a * NumberOfColours + colour])
+      {
+        if (m_Labels[p] == cell)
+        {
+          Enqueue(p, queue, 0);
+        }
+      }
       for (unsigned int k = 0; k < D; ++k)
       {
         const int64_t last = static_cast<int64_t>(m_Grid.size[k]) - 1;
@@ -1119,27 +1119,24 @@ private:
     {
       m_ChunkProposals.resize(nChunks);
     }
-    ParallelForChunkIds(m_Threader,
-                        nChunks,
-                        [&](size_t c)
-                        {
-                          auto & proposals = m_ChunkProposals[c];
-                          proposals.clear();
-                          const size_t end = std::min(n, (c + 1) * chunk);
-                          for (size_t i = c * chunk; i < end; ++i)
-                          {
-                            const size_t    p = queue[i];
-                            const auto      idx = m_Grid.Index(p);
-                            const LabelType own = m_Labels[p];
-                            LabelType       candidates[2 * D];
-                            const unsigned  nc = NeighbourCells(p, idx, own, candidates);
-                            Proposal        prop;
-                            if (nc > 0 && ActiveSwap(p, idx, own, candidates, nc, prop))
-                            {
-                              proposals.push_back(prop);
-                            }
-                          }
-                        });
+    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+      auto & proposals = m_ChunkProposals[c];
+      proposals.clear();
+      const size_t end = std::min(n, (c + 1) * chunk);
+      for (size_t i = c * chunk; i < end; ++i)
+      {
+        const size_t    p = queue[i];
+        const auto      idx = m_Grid.Index(p);
+        const LabelType own = m_Labels[p];
+        LabelType       candidates[2 * D];
+        const unsigned  nc = NeighbourCells(p, idx, own, candidates);
+        Proposal        prop;
+        if (nc > 0 && ActiveSwap(p, idx, own, candidates, nc, prop))
+        {
+          proposals.push_back(prop);
+        }
+      }
+    });
     for (size_t c = 0; c < nChunks; ++c)
     {
       m_Proposals.insert(m_Proposals.end(), m_ChunkProposals[c].begin(), m_ChunkProposals[c].end());
@@ -1197,7 +1194,7 @@ private:
           m_CellLists[l].push_back(static_cast<uint32_t>(r));
           if (m_CellLists[l].size() > 2 * m_CellListCompactedSize[l] + 64)
           {
-            CompactCellList(l, cell, [](size_t) {}); // bounds the stale entries of lists that are not gathered
+            CompactCellList(l, cell); // bounds the stale entries
           }
         }
       }
