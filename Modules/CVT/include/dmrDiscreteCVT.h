@@ -1024,7 +1024,12 @@ private:
       proposals.clear();
       for (size_t i = begin; i < end; ++i)
       {
-        const size_t    p = list[i];
+        const size_t p = list[i];
+        if ((m_PixelState[p] & (Blocked | Changed)) == Blocked)
+        {
+          list[kept++] = static_cast<uint32_t>(p); // a boundary pixel still, and still no proposal (ActiveSwap)
+          continue;
+        }
         const auto      idx = m_Grid.Index(p);
         const LabelType own = m_Labels[p];
         LabelType       candidates[2 * D];
