@@ -286,6 +286,13 @@ run-3d)
   check "report: tre_mm.mean is a number below the initial one" awk_true "${tre1:-99} < 1"
   rss=$(json_number "$out/report.json" peak_rss_mb)
   check "report: peak_rss_mb is positive ('$rss')" awk_true "${rss:-0} > 0"
+  check "report: moving_resampled is false for images on one grid" grep -q '"moving_resampled": false' "$out/report.json"
+  # a moving image on another grid (the coarse mask grid) is resampled onto the fixed grid, not rejected
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/mask3d.nii.gz" --output-dir "$W/out-other-grid" --nodes 20 \
+    --iterations 2 --threads 2
+  check "moving image on another grid: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+  check "report: moving_resampled is true" grep -q '"moving_resampled": true' "$W/out-other-grid/report.json"
+  check "warped.nii.gz lies on the fixed grid" "$CHECK" same-grid "$W/fixed3d.nii.gz" "$W/out-other-grid/warped.nii.gz"
   ;;
 bad-3d-options)
   check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
