@@ -23,6 +23,7 @@
 #include "dmrErrorStatistics.h"
 #include "dmrLungMask.h"
 #include "dmrReadImage.h"
+#include "dmrToolErrors.h"
 #include "itkResampleImageFilter.h"
 #include <array>
 #include "itkImageFileWriter.h"
@@ -58,11 +59,7 @@ const char * const kUsage =
   "  --float           write fixed/moving as float (default: short when the CT holds integers in the int16 range)\n"
   "  Prints the field's max |u|, det(I + grad u) range, the lung volume and |u| inside the lungs.\n";
 
-/** A bad-input error: reported as one line, exit code 2. */
-struct UsageError : std::runtime_error
-{
-  using std::runtime_error::runtime_error;
-};
+using dmrtools::UsageError;
 
 struct Options
 {
@@ -71,23 +68,6 @@ struct Options
   bool        forceFloat{ false };
   std::array<unsigned long, 3> size{ { 0, 0, 0 } }; // 0: keep the input grid
 };
-
-std::string
-OneLine(std::string s)
-{
-  for (auto & c : s)
-  {
-    if (c == '\n' || c == '\r')
-    {
-      c = ' ';
-    }
-  }
-  while (!s.empty() && s.back() == ' ')
-  {
-    s.pop_back();
-  }
-  return s;
-}
 
 Options
 ParseArguments(int argc, char * argv[])
@@ -422,24 +402,5 @@ Run(const Options & opt)
 int
 main(int argc, char * argv[])
 {
-  itk::Object::GlobalWarningDisplayOff(); // GDCM warnings would break one-line errors
-  try
-  {
-    return Run(ParseArguments(argc, argv));
-  }
-  catch (const UsageError & e)
-  {
-    std::cerr << "dmrGenerateBreathing: error: " << OneLine(e.what()) << '\n';
-    return 2;
-  }
-  catch (const itk::ExceptionObject & e)
-  {
-    std::cerr << "dmrGenerateBreathing: error: " << OneLine(e.GetDescription()) << '\n';
-    return 1;
-  }
-  catch (const std::exception & e)
-  {
-    std::cerr << "dmrGenerateBreathing: error: " << OneLine(e.what()) << '\n';
-    return 1;
-  }
+  return dmrtools::RunReportingErrors("dmrGenerateBreathing", [&]() { return Run(ParseArguments(argc, argv)); });
 }

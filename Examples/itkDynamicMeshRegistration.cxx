@@ -31,6 +31,7 @@
 #include "dmrMeshFileIO.h"
 #include "dmrLandmarks.h"
 #include "dmrReadImage.h"
+#include "dmrToolErrors.h"
 #include "dmrErrorStatistics.h"
 #include "itk_zlib.h"
 #include "itkResampleImageFilter.h"
@@ -64,11 +65,7 @@
 
 namespace
 {
-/** A bad-input error: reported as one line, exit code 2. */
-struct UsageError : std::runtime_error
-{
-  using std::runtime_error::runtime_error;
-};
+using dmrtools::UsageError;
 
 struct Options
 {
@@ -922,38 +919,10 @@ Run(const Options & opt)
 }
 } // namespace
 
-/** Error messages are one line: ITK's exception texts can span several. */
-std::string
-OneLine(std::string message)
-{
-  for (char & c : message)
-  {
-    if (c == '\n' || c == '\r' || c == '\t')
-    {
-      c = ' ';
-    }
-  }
-  std::string out;
-  for (char c : message)
-  {
-    if (!(c == ' ' && !out.empty() && out.back() == ' '))
-    {
-      out += c;
-    }
-  }
-  while (!out.empty() && out.back() == ' ')
-  {
-    out.pop_back();
-  }
-  return out;
-}
-
 int
 main(int argc, char * argv[])
 {
-  itk::Object::GlobalWarningDisplayOff(); // warnings (e.g. GDCM's "no series found") would break one-line errors
-  try
-  {
+  return dmrtools::RunReportingErrors("itkDynamicMeshRegistration", [&]() {
     const Options opt = ParseArguments(argc, argv);
     if (opt.threads > 0)
     {
@@ -975,20 +944,5 @@ main(int argc, char * argv[])
       return Run<3>(opt);
     }
     throw UsageError("only 2D and 3D images are supported, got " + std::to_string(dFixed) + "D");
-  }
-  catch (const UsageError & e)
-  {
-    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.what()) << '\n';
-    return 2;
-  }
-  catch (const itk::ExceptionObject & e)
-  {
-    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.GetDescription()) << '\n';
-    return 1;
-  }
-  catch (const std::exception & e)
-  {
-    std::cerr << "itkDynamicMeshRegistration: error: " << OneLine(e.what()) << '\n';
-    return 1;
-  }
+  });
 }
