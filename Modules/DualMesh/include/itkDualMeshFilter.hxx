@@ -27,6 +27,36 @@ namespace itk
 {
 namespace dmr
 {
+/** The 2^D image corners (grid frame): first(cell, x) for the first corner a cell holds (the cell's node goes
+ * there), extra(x) for each further corner of a cell that already has one (an extra node). */
+template <unsigned int D, typename TLabel, typename TFirst, typename TExtra>
+void
+ForEachImageCorner(const Grid<D> & grid, const TLabel * L, size_t nCells, TFirst && first, TExtra && extra)
+{
+  std::vector<bool> cornerTaken(nCells, false);
+  for (unsigned int corner = 0; corner < (1u << D); ++corner)
+  {
+    size_t p = 0;
+    double x[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const size_t i = (corner >> k) & 1u ? grid.size[k] - 1 : 0;
+      p += i * grid.stride[k];
+      x[k] = static_cast<double>(i) * grid.spacing[k];
+    }
+    const auto c = static_cast<size_t>(L[p]);
+    if (!cornerTaken[c])
+    {
+      cornerTaken[c] = true;
+      first(c, x);
+    }
+    else
+    {
+      extra(x);
+    }
+  }
+}
+
 /** Number of node pairs (a, b) that are not an edge of any element. */
 template <size_t VVertices>
 size_t
@@ -214,33 +244,15 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData2D(const dmr::Grid<ImageDi
       }
     }
   }
-  // corners: the cell that holds a corner pixel gets its node there; further corners of the same cell are extra nodes
-  std::vector<bool> cornerTaken(nCells, false);
-  for (unsigned int corner = 0; corner < (1u << D); ++corner)
-  {
-    size_t p = 0;
-    double x[D];
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      const size_t i = (corner >> k) & 1u ? grid.size[k] - 1 : 0;
-      p += i * grid.stride[k];
-      x[k] = static_cast<double>(i) * grid.spacing[k];
-    }
-    const int64_t c = L[p];
-    if (!cornerTaken[c])
-    {
-      cornerTaken[c] = true;
+  dmr::ForEachImageCorner<D>(
+    grid,
+    L,
+    nCells,
+    [&](size_t c, const double * x) {
       kind[c] = 2;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        nodes[c * D + k] = x[k];
-      }
-    }
-    else
-    {
-      nodes.insert(nodes.end(), x, x + D);
-    }
-  }
+      std::copy(x, x + D, &nodes[c * D]);
+    },
+    [&](const double * x) { nodes.insert(nodes.end(), x, x + D); });
   // constraints: edges between adjacent inner cells (paper 4.6)
   std::vector<std::array<int32_t, 2>> constraints;
   for (const auto & a : adjacency)
@@ -461,31 +473,18 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData3D(const dmr::Grid<ImageDi
       }
     }
   }
-  // corners: the cell that holds a corner voxel gets its node there; further corners of the same cell are extra nodes
-  std::vector<bool> cornerTaken(nCells, false);
-  for (unsigned int corner = 0; corner < (1u << D); ++corner)
-  {
-    size_t p = 0;
-    double x[D];
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      const size_t i = (corner >> k) & 1u ? grid.size[k] - 1 : 0;
-      p += i * grid.stride[k];
-      x[k] = (corner >> k) & 1u ? hi[k] : 0.0;
-    }
-    const auto c = static_cast<size_t>(L[p]);
-    if (!cornerTaken[c])
-    {
-      cornerTaken[c] = true;
+  dmr::ForEachImageCorner<D>(
+    grid,
+    L,
+    nCells,
+    [&](size_t c, const double * x) {
       std::copy(x, x + D, &nodes[c * D]);
       freeAxes[c] = 0;
-    }
-    else
-    {
+    },
+    [&](const double * x) {
       nodes.insert(nodes.end(), x, x + D);
       freeAxes.push_back(0);
-    }
-  }
+    });
 
   // Delaunay tetrahedralization of all nodes (no constraints: see dmrDelaunay3D.h). The corners are nodes, so the
   // convex hull is the box. Near-flat tetrahedra are removed by nudging their nodes, never more than a quarter voxel
