@@ -107,7 +107,8 @@ const char * const Usage =
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
   "  --fixed-mask FILE      region of interest on the fixed image (non-zero = inside, e.g. the lungs): forces,\n"
   "                         density and SSD only inside it; resampled (nearest) onto the fixed grid if needed\n"
-  "  --intensity-window LO,HI  clamp both images to [LO, HI] and scale to [0, 1] (e.g. -1000,200 for lung CT HU)\n"
+  "  --intensity-window LO,HI  register the images clamped to [LO, HI] and scaled to [0, 1] (e.g. -1000,200 for\n"
+  "                         lung CT in HU); warped.nii.gz keeps the moving image's own intensities\n"
   "  --fixed-landmarks FILE, --moving-landmarks FILE\n"
   "                         corresponding points (DIR-Lab format: 'x y z' per line, 1-based voxel indices of the\n"
   "                         fixed / moving image): the report gets tre_mm and tre_initial_mm {mean, std, p95, max}\n"
@@ -545,23 +546,33 @@ Run(const Options & opt)
   {
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
+  typename ImageType::Pointer movingInput = moving; // as read: warped.nii.gz samples it (original intensities)
   if (opt.window)
   {
-    // CT: clamp to the window and scale to [0, 1] so that the SSD (and beta) are well scaled for HU
-    const float lo = static_cast<float>(opt.windowLow), scale = static_cast<float>(1.0 / (opt.windowHigh - opt.windowLow));
+    // CT: clamp to the window and scale to [0, 1] so that the SSD (and beta) are well scaled for HU; the moving
+    // image is windowed in a copy so that the warped output keeps the input's intensities
+    auto copy = ImageType::New();
+    copy->CopyInformation(moving);
+    copy->SetRegions(moving->GetLargestPossibleRegion());
+    copy->Allocate();
+    std::copy(moving->GetBufferPointer(),
+              moving->GetBufferPointer() + moving->GetBufferedRegion().GetNumberOfPixels(),
+              copy->GetBufferPointer());
+    moving = copy;
+    const float lo = static_cast<float>(opt.windowLow), hi = static_cast<float>(opt.windowHigh);
+    const float scale = static_cast<float>(1.0 / (opt.windowHigh - opt.windowLow));
     for (ImageType * image : { fixed.GetPointer(), moving.GetPointer() })
     {
       float *      v = image->GetBufferPointer();
       const size_t count = image->GetBufferedRegion().GetNumberOfPixels();
       for (size_t p = 0; p < count; ++p)
       {
-        v[p] = (std::min(std::max(v[p], lo), static_cast<float>(opt.windowHigh)) - lo) * scale;
+        v[p] = (std::min(std::max(v[p], lo), hi) - lo) * scale;
       }
       image->Modified();
     }
   }
   const bool movingResampled = !SameGrid(fixed.GetPointer(), moving.GetPointer());
-  typename ImageType::Pointer movingInput = moving; // as read (and windowed): the warped output samples it
   if (movingResampled)
   {
     // a moving image on another grid is brought onto the fixed grid first (linear, outside = its minimum)

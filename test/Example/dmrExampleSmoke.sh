@@ -293,6 +293,12 @@ run-3d)
   check "moving image on another grid: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
   check "report: moving_resampled is true" grep -q '"moving_resampled": true' "$W/out-other-grid/report.json"
   check "warped.nii.gz lies on the fixed grid" "$CHECK" same-grid "$W/fixed3d.nii.gz" "$W/out-other-grid/warped.nii.gz"
+  # --intensity-window registers windowed copies; warped.nii.gz keeps the moving image's intensities (cube ~1.04-1.09)
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-window" --nodes 20 \
+    --iterations 2 --threads 2 --intensity-window 0,0.5
+  check "--intensity-window run: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+  dw=$("$DICE" "$W/out-window/warped.nii.gz" "$W/fixed3d.nii.gz" 1.05)
+  check "warped.nii.gz keeps intensities above the window (Dice of {> 1.05} is $dw)" awk_true "${dw:-0} > 0.3"
   ;;
 bad-3d-options)
   check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
