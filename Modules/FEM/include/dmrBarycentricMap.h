@@ -29,7 +29,9 @@ namespace dmr
 {
 /** \brief Per-pixel element and barycentric coordinates of a simplex mesh over an image grid (paper 4.7).
  *
- * Built by rasterising every element over the pixel centres in its bounding box (parallel over elements). A pixel
+ * Built by rasterising every element (parallel over elements): along each row of its bounding box the barycentric
+ * coordinates are affine in the first index, so only the span where all of them can be >= 0 (widened by a pixel on
+ * each side) is tested, with the same per-pixel test as a full scan of the box. A pixel
  * centre on a shared edge/face is inside several elements; the element with the lowest id wins (an atomic minimum,
  * the rule the CUDA kernel uses too), so every pixel lies in exactly one element. Weights are in [0,1] and sum to 1.
  * Gather() forms the consistent load vector f_a = sum_x phi_a(x) f(x) dV; Interpolate() gives u(x) = sum_a phi_a(x)
@@ -56,12 +58,17 @@ public:
     const size_t nElements = mesh.elements.size();
     const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 4));
     const size_t chunk = (nElements + nChunks - 1) / nChunks;
+    // per-element inverse edge matrix and first vertex, computed once (the weights pass reads them again)
+    constexpr size_t  affineSize = D * D + D;
+    std::vector<double> affine(nElements * affineSize);
     ParallelForChunkIds(threader, nChunks, [&](size_t c) {
       const size_t end = std::min(nElements, (c + 1) * chunk);
       for (size_t e = c * chunk; e < end; ++e)
       {
         double inv[D][D], x0[D];
         mesh.EdgeMatrix(e, x0, &inv);
+        std::copy(&inv[0][0], &inv[0][0] + D * D, affine.data() + e * affineSize);
+        std::copy(x0, x0 + D, affine.data() + e * affineSize + D * D);
         int64_t lo[D], hi[D];
         for (unsigned int k = 0; k < D; ++k)
         {
@@ -85,13 +92,65 @@ public:
         {
           continue;
         }
+        // slope of every barycentric coordinate along axis 0 (per pixel) and its scale, for the row spans
+        double slope[NumberOfVertices], scale[NumberOfVertices];
+        slope[0] = 0.0;
+        scale[0] = 0.0;
+        for (unsigned int r = 0; r < D; ++r)
+        {
+          slope[r + 1] = inv[r][0] * grid.spacing[0];
+          slope[0] -= slope[r + 1];
+          scale[r + 1] = 0.0;
+          for (unsigned int c = 0; c < D; ++c)
+          {
+            scale[r + 1] += std::abs(inv[r][c]) * grid.spacing[c];
+          }
+          scale[0] += scale[r + 1];
+        }
         int64_t idx[D];
         for (unsigned int k = 0; k < D; ++k)
         {
           idx[k] = lo[k];
         }
+        int64_t rowEnd = hi[0];
         while (true)
         {
+          if (idx[0] == lo[0])
+          {
+            // the span of this row where lambda_v(i) = lambda_v(lo) + slope_v (i - lo) >= -1e-9 for all v, widened
+            // by one pixel on each side against rounding; a flat coordinate only empties the row when clearly < 0
+            double lambda[NumberOfVertices];
+            Barycentric(inv, x0, idx, lambda);
+            double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
+            bool   empty = false;
+            for (unsigned int v = 0; v < NumberOfVertices; ++v)
+            {
+              if (std::abs(slope[v]) <= 1e-9 * scale[v])
+              {
+                empty = empty || lambda[v] < -1e-6;
+                continue;
+              }
+              const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
+              if (slope[v] > 0.0)
+              {
+                first = std::max(first, std::floor(at) - 1.0);
+              }
+              else
+              {
+                last = std::min(last, std::ceil(at) + 1.0);
+              }
+            }
+            if (empty || first > last)
+            {
+              idx[0] = hi[0]; // nothing in this row: go to the next one
+              rowEnd = hi[0] - 1;
+            }
+            else
+            {
+              idx[0] = static_cast<int64_t>(first);
+              rowEnd = static_cast<int64_t>(last);
+            }
+          }
           double lambda[NumberOfVertices];
           Barycentric(inv, x0, idx, lambda);
           bool inside = true;
@@ -99,7 +158,7 @@ public:
           {
             inside = inside && lambda[v] >= -1e-9;
           }
-          if (inside)
+          if (inside && idx[0] <= rowEnd)
           {
             size_t p = 0;
             for (unsigned int k = 0; k < D; ++k)
@@ -115,7 +174,7 @@ public:
           unsigned int k = 0;
           for (; k < D; ++k)
           {
-            if (++idx[k] <= hi[k])
+            if (++idx[k] <= (k == 0 ? rowEnd : hi[k]))
             {
               break;
             }
@@ -142,7 +201,9 @@ public:
         }
         m_Element[p] = e;
         double inv[D][D], x0[D];
-        mesh.EdgeMatrix(e, x0, &inv);
+        const double * a = affine.data() + e * affineSize;
+        std::copy(a, a + D * D, &inv[0][0]);
+        std::copy(a + D * D, a + affineSize, x0);
         const auto idx3 = grid.Index(p);
         int64_t    idx[D];
         for (unsigned int k = 0; k < D; ++k)
