@@ -159,6 +159,14 @@ TEST(BarycentricMap, EveryPixelLiesInOneElementOfTheDualMesh)
   CheckEveryPixelLiesInOneElement<2>(phantom.GetGrid(), phantom.GetMesh());
 }
 
+// An irregular tetrahedral mesh (TetGen dual of a 3D CVT, anisotropic spacing): the row-span rasterisation must give
+// the owner of the brute-force rule at every voxel.
+TEST(BarycentricMap, EveryVoxelLiesInOneElementOfTheDualMesh3D)
+{
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom3D(60);
+  CheckEveryPixelLiesInOneElement<3>(phantom.GetGrid(), phantom.GetMesh());
+}
+
 template <unsigned int D>
 void
 CheckLinearFieldIsReproduced(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
