@@ -232,38 +232,20 @@ CastImage(const TIn * in)
   return out;
 }
 
-/** Checks that path holds one 3D scalar image (or is a directory; the DICOM reader checks those). */
+/** Checks that path holds one 3D scalar image or a DICOM series directory. */
 void
 CheckInput(const std::string & path)
 {
-  if (!itksys::SystemTools::FileExists(path))
-  {
-    throw UsageError("no such file or directory: " + path);
-  }
-  if (itksys::SystemTools::FileIsDirectory(path))
-  {
-    return;
-  }
-  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
-  if (!io)
-  {
-    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
-  }
-  io->SetFileName(path);
-  io->ReadImageInformation();
-  unsigned int d = io->GetNumberOfDimensions();
-  while (d > 3 && io->GetDimensions(d - 1) == 1)
-  {
-    --d;
-  }
+  unsigned int components = 1;
+  const unsigned int d = dmrtools::ImageDimensionOf(path, &components);
   if (d != 3)
   {
     throw UsageError("the input must be a 3D image, " + path + " is " + std::to_string(d) + "D");
   }
-  if (io->GetNumberOfComponents() != 1)
+  if (components != 1)
   {
-    throw UsageError("the input must be a scalar (CT) image, " + path + " has " +
-                     std::to_string(io->GetNumberOfComponents()) + " components per voxel");
+    throw UsageError("the input must be a scalar (CT) image, " + path + " has " + std::to_string(components) +
+                     " components per voxel");
   }
 }
 

@@ -28,6 +28,9 @@
 #include "itkImageFileReader.h"
 #include "itkImageSeriesReader.h"
 #include "itkMacro.h"
+#include "itkImageIOFactory.h"
+#include "itk_zlib.h"
+#include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
 #include <string>
 #include <vector>
@@ -76,6 +79,64 @@ ReadImageOrDicomSeries(const std::string & path)
   reader->SetFileName(path);
   reader->Update();
   return reader->GetOutput();
+}
+/** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
+ * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Detects truncated .gz files,
+ * which ITK's readers do not notice. Throws UsageError (bad input) otherwise. */
+inline unsigned int
+ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
+{
+  if (components)
+  {
+    *components = 1;
+  }
+  if (!itksys::SystemTools::FileExists(path))
+  {
+    throw UsageError("no such file or directory: " + path);
+  }
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    auto names = itk::GDCMSeriesFileNames::New();
+    names->SetDirectory(path);
+    if (names->GetSeriesUIDs().empty())
+    {
+      throw UsageError("directory holds no DICOM series: " + path);
+    }
+    return 3;
+  }
+  if (itksys::SystemTools::GetFilenameLastExtension(path) == ".gz")
+  {
+    // ITK's readers do not notice a gzip stream that ends early: read it through once and check its trailer
+    gzFile      file = gzopen(path.c_str(), "rb");
+    std::string buffer(1 << 20, '\0');
+    int         got = 0;
+    while (file && (got = gzread(file, &buffer[0], static_cast<unsigned int>(buffer.size()))) > 0)
+    {
+    }
+    const bool ok = file && got == 0 && gzclose(file) == Z_OK;
+    if (!ok)
+    {
+      throw UsageError("cannot read " + path + ": the compressed file is truncated or corrupt");
+    }
+  }
+  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
+  if (!io)
+  {
+    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
+  }
+  io->SetFileName(path);
+  io->ReadImageInformation();
+  if (components)
+  {
+    *components = io->GetNumberOfComponents();
+  }
+  unsigned int d = io->GetNumberOfDimensions();
+  // a 3D file with a single slice is a 2D image
+  while (d > 2 && io->GetDimensions(d - 1) == 1)
+  {
+    --d;
+  }
+  return d;
 }
 } // namespace dmrtools
 

@@ -33,7 +33,6 @@
 #include "dmrReadImage.h"
 #include "dmrToolErrors.h"
 #include "dmrErrorStatistics.h"
-#include "itk_zlib.h"
 #include "itkResampleImageFilter.h"
 #include "itkLinearInterpolateImageFunction.h"
 #include "itkNearestNeighborInterpolateImageFunction.h"
@@ -275,54 +274,7 @@ ParseArguments(int argc, char * argv[])
   return opt;
 }
 
-/** Dimension of an image file or DICOM directory, or a UsageError. */
-unsigned int
-ImageDimensionOf(const std::string & path)
-{
-  if (!itksys::SystemTools::FileExists(path))
-  {
-    throw UsageError("no such file or directory: " + path);
-  }
-  if (itksys::SystemTools::FileIsDirectory(path))
-  {
-    auto names = itk::GDCMSeriesFileNames::New();
-    names->SetDirectory(path);
-    if (names->GetSeriesUIDs().empty())
-    {
-      throw UsageError("directory holds no DICOM series: " + path);
-    }
-    return 3;
-  }
-  if (itksys::SystemTools::GetFilenameLastExtension(path) == ".gz")
-  {
-    // ITK's readers do not notice a gzip stream that ends early: read it through once and check its trailer
-    gzFile      file = gzopen(path.c_str(), "rb");
-    std::string buffer(1 << 20, '\0');
-    int         got = 0;
-    while (file && (got = gzread(file, &buffer[0], static_cast<unsigned int>(buffer.size()))) > 0)
-    {
-    }
-    const bool ok = file && got == 0 && gzclose(file) == Z_OK;
-    if (!ok)
-    {
-      throw UsageError("cannot read " + path + ": the compressed file is truncated or corrupt");
-    }
-  }
-  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
-  if (!io)
-  {
-    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
-  }
-  io->SetFileName(path);
-  io->ReadImageInformation();
-  unsigned int d = io->GetNumberOfDimensions();
-  // a 3D file with a single slice is a 2D image
-  while (d > 2 && io->GetDimensions(d - 1) == 1)
-  {
-    --d;
-  }
-  return d;
-}
+using dmrtools::ImageDimensionOf;
 
 template <typename TImage>
 typename TImage::Pointer
