@@ -24,6 +24,7 @@
 #include "dmrLungMask.h"
 #include "dmrReadImage.h"
 #include "dmrToolErrors.h"
+#include "dmrToolOutput.h"
 #include "itkResampleImageFilter.h"
 #include <array>
 #include "itkImageFileWriter.h"
@@ -139,80 +140,8 @@ ParseArguments(int argc, char * argv[])
   return opt;
 }
 
-/** Files are written under temporary names in the output directory and renamed when all are written; on failure
- * they are removed (and the directory too when this run created it). */
-class Staging
-{
-public:
-  explicit Staging(const std::string & dir)
-    : m_Dir(dir)
-  {
-    if (itksys::SystemTools::FileExists(dir) && !itksys::SystemTools::FileIsDirectory(dir))
-    {
-      throw UsageError("--output-dir exists and is not a directory: " + dir);
-    }
-    if (!itksys::SystemTools::FileExists(dir))
-    {
-      if (!itksys::SystemTools::MakeDirectory(dir))
-      {
-        throw UsageError("cannot create the output directory " + dir);
-      }
-      m_CreatedDir = true;
-    }
-  }
-  /** Temporary path for final name (keeps the extension, so ITK picks the right writer). */
-  std::string
-  Path(const std::string & name)
-  {
-    const std::string tmp = m_Dir + "/.partial-" + std::to_string(::getpid()) + "-" + name;
-    m_Files.emplace_back(tmp, m_Dir + "/" + name);
-    return tmp;
-  }
-  void
-  Commit()
-  {
-    for (const auto & f : m_Files)
-    {
-      if (std::rename(f.first.c_str(), f.second.c_str()) != 0)
-      {
-        throw std::runtime_error("could not rename " + f.first + " to " + f.second);
-      }
-    }
-    m_Committed = true;
-  }
-  ~Staging()
-  {
-    if (m_Committed)
-    {
-      return;
-    }
-    for (const auto & f : m_Files)
-    {
-      std::remove(f.first.c_str());
-    }
-    if (m_CreatedDir)
-    {
-      itksys::SystemTools::RemoveADirectory(m_Dir);
-    }
-  }
-
-private:
-  std::string                                      m_Dir;
-  std::vector<std::pair<std::string, std::string>> m_Files;
-  bool                                             m_CreatedDir{ false };
-  bool                                             m_Committed{ false };
-};
-
-template<typename TImage>
-void
-WriteImage(const TImage * image, const std::string & path)
-{
-  auto writer = itk::ImageFileWriter<TImage>::New();
-  writer->SetInput(image);
-  writer->SetFileName(path);
-  writer->UseCompressionOn();
-  writer->Update();
-}
+using dmrtools::Staging;
+using dmrtools::WriteImage;
 
 template<typename TOut, typename TIn>
 typename TOut::Pointer

@@ -32,6 +32,7 @@
 #include "dmrLandmarks.h"
 #include "dmrReadImage.h"
 #include "dmrToolErrors.h"
+#include "dmrToolOutput.h"
 #include "dmrErrorStatistics.h"
 #include "itkResampleImageFilter.h"
 #include "itkLinearInterpolateImageFunction.h"
@@ -39,7 +40,6 @@
 #include "itkCommand.h"
 #include "itkMultiThreaderBase.h"
 #include "itksys/SystemTools.hxx"
-#include "itksys/Directory.hxx"
 
 #ifdef DMR_WITH_VTK
 #  include <vtkSmartPointer.h>
@@ -276,24 +276,6 @@ ParseArguments(int argc, char * argv[])
 
 using dmrtools::ImageDimensionOf;
 
-template <typename TImage>
-typename TImage::Pointer
-ReadImage(const std::string & path)
-{
-  return dmrtools::ReadImageOrDicomSeries<TImage>(path);
-}
-
-template <typename TImage>
-void
-WriteImage(const TImage * image, const std::string & path)
-{
-  auto writer = itk::ImageFileWriter<TImage>::New();
-  writer->SetInput(image);
-  writer->SetFileName(path);
-  writer->UseCompressionOn();
-  writer->Update();
-}
-
 template <unsigned int D, typename TMesh>
 void
 WriteMeshVTU(const TMesh * mesh, const std::string & path)
@@ -348,66 +330,6 @@ JsonEscape(const std::string & s)
   }
   return out;
 }
-
-/** Everything is written into a private staging folder inside the output directory and moved into place only when
- * the run succeeded, so a failure never leaves half-written outputs. */
-struct Staging
-{
-  std::string dir, stage;
-  bool        createdDir{ false };
-  bool        committed{ false };
-  explicit Staging(const std::string & outputDir)
-    : dir(outputDir)
-  {
-    if (!itksys::SystemTools::FileExists(dir))
-    {
-      createdDir = true;
-    }
-    else if (!itksys::SystemTools::FileIsDirectory(dir))
-    {
-      throw UsageError("--output-dir exists and is not a directory: " + dir);
-    }
-    stage = dir + "/.dmr-partial-" + std::to_string(::getpid());
-    if (!itksys::SystemTools::MakeDirectory(stage))
-    {
-      throw UsageError("cannot create the output directory " + dir);
-    }
-  }
-  std::string
-  Path(const std::string & name) const
-  {
-    return stage + "/" + name;
-  }
-  void
-  Commit()
-  {
-    itksys::Directory listing;
-    listing.Load(stage);
-    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
-    {
-      const std::string name = listing.GetFile(i);
-      if (name == "." || name == "..")
-        continue;
-      if (std::rename((stage + "/" + name).c_str(), (dir + "/" + name).c_str()) != 0)
-      {
-        throw std::runtime_error("could not move " + name + " into " + dir);
-      }
-    }
-    itksys::SystemTools::RemoveADirectory(stage);
-    committed = true;
-  }
-  ~Staging()
-  {
-    if (!committed)
-    {
-      itksys::SystemTools::RemoveADirectory(stage);
-      if (createdDir)
-      {
-        itksys::SystemTools::RemoveADirectory(dir);
-      }
-    }
-  }
-};
 
 /** An ITK exception's description without its "ITK ERROR: " prefix (messages are meant for one line). */
 std::string
@@ -491,8 +413,8 @@ Run(const Options & opt)
   typename ImageType::Pointer fixed, moving;
   try
   {
-    fixed = ReadImage<ImageType>(opt.fixed);
-    moving = ReadImage<ImageType>(opt.moving);
+    fixed = dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed);
+    moving = dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving);
   }
   catch (const itk::ExceptionObject & e)
   {
@@ -540,7 +462,7 @@ Run(const Options & opt)
     }
     try
     {
-      mask = ReadImage<MaskType>(opt.fixedMask);
+      mask = dmrtools::ReadImageOrDicomSeries<MaskType>(opt.fixedMask);
     }
     catch (const itk::ExceptionObject & e)
     {
@@ -620,7 +542,7 @@ Run(const Options & opt)
     }
     try
     {
-      truth = ReadImage<FieldType>(opt.truthDisplacement);
+      truth = dmrtools::ReadImageOrDicomSeries<FieldType>(opt.truthDisplacement);
     }
     catch (const itk::ExceptionObject & e)
     {
@@ -703,7 +625,7 @@ Run(const Options & opt)
     meshMode = "static";
   }
 
-  Staging                  staging(opt.outputDir);
+  dmrtools::Staging        staging(opt.outputDir);
   std::vector<std::pair<unsigned int, std::string>> meshFiles;
   auto                     saveMesh = [&](unsigned int iteration) {
     std::ostringstream name;
@@ -753,11 +675,11 @@ Run(const Options & opt)
   resample->SetOutputParametersFromImage(fixed);
   resample->SetInterpolator(itk::LinearInterpolateImageFunction<ImageType, double>::New());
   resample->Update();
-  WriteImage(resample->GetOutput(), staging.Path("warped.nii.gz"));
-  WriteImage(field, staging.Path("displacement.nii.gz"));
+  dmrtools::WriteImage(resample->GetOutput(), staging.Path("warped.nii.gz"));
+  dmrtools::WriteImage(field, staging.Path("displacement.nii.gz"));
   std::pair<double, double> jacobianRange;
   auto jacobian = itk::dmr::JacobianDeterminantImage(field, jacobianRange, method->GetMultiThreader());
-  WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
+  dmrtools::WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
 
   {
     std::ofstream csv(staging.Path("energy.csv"));
