@@ -588,10 +588,11 @@ TEST(DualMeshFilter3D, TinyImageWithEightCells)
   spacing[2] = 2.0;
   ImageType::PointType origin;
   origin.Fill(4.0);
-  DualMeshPhantom3D phantom(ImageType::SizeType{ { 5, 5, 5 } },
-                            spacing,
-                            origin,
-                            itk::dmr::test::RotationDirection3D<ImageType>({ 0.0, 0.0, 1.0 }, 0.4),
+  DualMeshPhantom3D phantom(itk::dmr::test::RidgeDensity3D(ImageType::SizeType{ { 5, 5, 5 } },
+                                                            spacing,
+                                                            origin,
+                                                            itk::dmr::test::RotationDirection3D<ImageType>(
+                                                              { 0.0, 0.0, 1.0 }, 0.4)),
                             8);
   const auto        grid = phantom.GetGrid();
   const auto &      mesh = phantom.GetMesh();

@@ -225,7 +225,7 @@ TEST(DualMeshFilter, WorksWithoutSitesAndWithUnitGeometry)
   origin.Fill(0.0);
   ImageType::DirectionType direction;
   direction.SetIdentity();
-  DualMeshPhantom phantom(ImageType::SizeType{ { 40, 36 } }, spacing, origin, direction, 16);
+  DualMeshPhantom phantom(itk::dmr::test::SmoothDensity2D(ImageType::SizeType{ { 40, 36 } }, spacing, origin, direction), 16);
   auto            noSites = FilterType::New();
   noSites->SetInput(phantom.cvt->GetOutput());
   noSites->Update();

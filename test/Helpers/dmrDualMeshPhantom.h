@@ -50,24 +50,22 @@ SmoothDensity2D(const Image<float, 2>::SizeType &      size,
   return image;
 }
 
-/** CVT labels and sites of a density, then its dual mesh. Keeps every pipeline object alive. */
-struct DualMeshPhantom
+/** CVT labels and sites of a density image, then its dual mesh (triangles in 2D, tetrahedra in 3D). Keeps every
+ * pipeline object alive. */
+template <unsigned int D>
+struct DualMeshPhantomOf
 {
-  using ImageType = Image<float, 2>;
+  using ImageType = Image<float, D>;
   using CVTFilterType = DiscreteCVTFilter<ImageType>;
-  using DualMeshFilterType = DualMeshFilter<CVTFilterType::LabelImageType>;
+  using DualMeshFilterType = DualMeshFilter<typename CVTFilterType::LabelImageType>;
 
-  ImageType::Pointer          density;
-  CVTFilterType::Pointer      cvt;
-  DualMeshFilterType::Pointer dual;
+  typename ImageType::Pointer          density;
+  typename CVTFilterType::Pointer      cvt;
+  typename DualMeshFilterType::Pointer dual;
 
-  DualMeshPhantom(const ImageType::SizeType &      size,
-                  const ImageType::SpacingType &   spacing,
-                  const ImageType::PointType &     origin,
-                  const ImageType::DirectionType & direction,
-                  SizeValueType                    numberOfCells)
+  DualMeshPhantomOf(typename ImageType::Pointer densityImage, SizeValueType numberOfCells)
+    : density(densityImage)
   {
-    density = SmoothDensity2D(size, spacing, origin, direction);
     cvt = CVTFilterType::New();
     cvt->SetInput(density);
     cvt->SetNumberOfCells(numberOfCells);
@@ -78,17 +76,19 @@ struct DualMeshPhantom
     dual->Update();
   }
 
-  Grid<2>
+  Grid<D>
   GetGrid() const
   {
-    return Grid<2>::FromImage(density);
+    return Grid<D>::FromImage(density);
   }
-  const SimplexMesh<2> &
+  const SimplexMesh<D> &
   GetMesh() const
   {
     return dual->GetSimplexMesh();
   }
 };
+using DualMeshPhantom = DualMeshPhantomOf<2>;
+using DualMeshPhantom3D = DualMeshPhantomOf<3>;
 
 /** 64x48 density, spacing 0.8 x 1.3, rotated by -40 degrees, origin (-20, 35): non-trivial geometry everywhere. */
 inline DualMeshPhantom
@@ -102,7 +102,8 @@ MakeDualMeshPhantom(SizeValueType numberOfCells = 20)
   ImageType::PointType origin;
   origin[0] = -20.0;
   origin[1] = 35.0;
-  return DualMeshPhantom(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318), numberOfCells);
+  return DualMeshPhantom(
+    SmoothDensity2D(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318)), numberOfCells);
 }
 /** The same density on a unit-spacing grid (rotated, shifted): border-pixel averages are exact there. */
 inline DualMeshPhantom
@@ -115,7 +116,7 @@ MakeUnitSpacingDualMeshPhantom(SizeValueType numberOfCells = 20)
   ImageType::PointType origin;
   origin[0] = 7.0;
   origin[1] = -3.0;
-  return DualMeshPhantom(size, spacing, origin, RotationDirection2D<ImageType>(0.3), numberOfCells);
+  return DualMeshPhantom(SmoothDensity2D(size, spacing, origin, RotationDirection2D<ImageType>(0.3)), numberOfCells);
 }
 
 /** Rotation by angle (radians) about an axis (normalised here; Rodrigues) as a 3D image direction. */
@@ -167,46 +168,6 @@ RidgeDensity3D(const Image<float, 3>::SizeType &      size,
   return image;
 }
 
-/** CVT labels and sites of a 3D density, then its dual (tetrahedral) mesh. Keeps every pipeline object alive. */
-struct DualMeshPhantom3D
-{
-  using ImageType = Image<float, 3>;
-  using CVTFilterType = DiscreteCVTFilter<ImageType>;
-  using DualMeshFilterType = DualMeshFilter<CVTFilterType::LabelImageType>;
-
-  ImageType::Pointer          density;
-  CVTFilterType::Pointer      cvt;
-  DualMeshFilterType::Pointer dual;
-
-  DualMeshPhantom3D(const ImageType::SizeType &      size,
-                    const ImageType::SpacingType &   spacing,
-                    const ImageType::PointType &     origin,
-                    const ImageType::DirectionType & direction,
-                    SizeValueType                    numberOfCells)
-  {
-    density = RidgeDensity3D(size, spacing, origin, direction);
-    cvt = CVTFilterType::New();
-    cvt->SetInput(density);
-    cvt->SetNumberOfCells(numberOfCells);
-    cvt->Update();
-    dual = DualMeshFilterType::New();
-    dual->SetInput(cvt->GetOutput());
-    dual->SetSites(cvt->GetSites());
-    dual->Update();
-  }
-
-  Grid<3>
-  GetGrid() const
-  {
-    return Grid<3>::FromImage(density);
-  }
-  const SimplexMesh<3> &
-  GetMesh() const
-  {
-    return dual->GetSimplexMesh();
-  }
-};
-
 /** 40 x 36 x 30 ridge density, spacing 1.0 x 1.2 x 2.5, rotated by 0.7 rad about (1, 2, 2), origin (-12, 30, 7.5). */
 inline DualMeshPhantom3D
 MakeDualMeshPhantom3D(SizeValueType numberOfCells = 200)
@@ -222,7 +183,7 @@ MakeDualMeshPhantom3D(SizeValueType numberOfCells = 200)
   origin[1] = 30.0;
   origin[2] = 7.5;
   return DualMeshPhantom3D(
-    size, spacing, origin, RotationDirection3D<ImageType>({ 1.0, 2.0, 2.0 }, 0.7), numberOfCells);
+    RidgeDensity3D(size, spacing, origin, RotationDirection3D<ImageType>({ 1.0, 2.0, 2.0 }, 0.7)), numberOfCells);
 }
 } // namespace test
 } // namespace dmr
