@@ -531,14 +531,7 @@ TEST(DualMeshFilter3D, OutputMeshIsInPhysicalSpace)
   const double det = vnl_determinant(labels->GetDirection().GetVnlMatrix());
   EXPECT_NEAR(physicalVolume, det * hi[0] * hi[1] * hi[2], 1e-9 * hi[0] * hi[1] * hi[2]);
   // back to the grid frame
-  const auto back = itk::dmr::FromItkMesh<3>(output, labels);
-  ASSERT_EQ(back.NumberOfNodes(), mesh.NumberOfNodes());
-  for (size_t i = 0; i < mesh.nodes.size(); ++i)
-  {
-    EXPECT_NEAR(back.nodes[i], mesh.nodes[i], 1e-9);
-  }
-  EXPECT_EQ(back.elements, mesh.elements);
-  EXPECT_EQ(back.fixed, mesh.fixed);
+  EXPECT_TRUE(itk::dmr::test::ItkMeshConvertsBackTo<3>(output, labels, mesh));
 }
 
 TEST(DualMeshFilter3D, IsDeterministic)

@@ -206,14 +206,7 @@ TEST(DualMeshFilter, OutputMeshIsInPhysicalSpace)
     }
   }
   // back to the grid frame: FromItkMesh(ToItkMesh(mesh)) is the mesh
-  const auto back = itk::dmr::FromItkMesh<2>(output, labels);
-  ASSERT_EQ(back.NumberOfNodes(), mesh.NumberOfNodes());
-  for (size_t i = 0; i < mesh.nodes.size(); ++i)
-  {
-    EXPECT_NEAR(back.nodes[i], mesh.nodes[i], 1e-9);
-  }
-  EXPECT_EQ(back.elements, mesh.elements);
-  EXPECT_EQ(back.fixed, mesh.fixed);
+  EXPECT_TRUE(itk::dmr::test::ItkMeshConvertsBackTo<2>(output, labels, mesh));
 }
 
 TEST(DualMeshFilter, WorksWithoutSitesAndWithUnitGeometry)

@@ -311,6 +311,37 @@ FixedNodesAreTheBorderNodes(const Grid<D> & grid, const SimplexMesh<D> & mesh)
   }
   return ::testing::AssertionSuccess();
 }
+
+/** FromItkMesh(output) (physical itk::Mesh back to the grid frame of image) gives the mesh again: nodes within 1e-9,
+ * the same elements and fixed flags. */
+template <unsigned int D, typename TItkMesh, typename TImage>
+::testing::AssertionResult
+ItkMeshConvertsBackTo(const TItkMesh * output, const TImage * image, const SimplexMesh<D> & mesh)
+{
+  const auto back = FromItkMesh<D>(output, image);
+  if (back.NumberOfNodes() != mesh.NumberOfNodes())
+  {
+    return ::testing::AssertionFailure() << back.NumberOfNodes() << " nodes back, " << mesh.NumberOfNodes()
+                                         << " expected";
+  }
+  for (size_t i = 0; i < mesh.nodes.size(); ++i)
+  {
+    if (!(std::abs(back.nodes[i] - mesh.nodes[i]) <= 1e-9))
+    {
+      return ::testing::AssertionFailure() << "node coordinate " << i << ": " << back.nodes[i] << " back, "
+                                           << mesh.nodes[i] << " expected";
+    }
+  }
+  if (back.elements != mesh.elements)
+  {
+    return ::testing::AssertionFailure() << "the elements differ";
+  }
+  if (back.fixed != mesh.fixed)
+  {
+    return ::testing::AssertionFailure() << "the fixed flags differ";
+  }
+  return ::testing::AssertionSuccess();
+}
 } // namespace test
 } // namespace dmr
 } // namespace itk
