@@ -344,34 +344,6 @@ WithoutItkPrefix(std::string text)
   return text;
 }
 
-/** True when both images have the same size, origin, spacing and direction (to a relative tolerance). */
-template <typename TA, typename TB>
-bool
-SameGrid(const TA * a, const TB * b)
-{
-  constexpr unsigned int D = TA::ImageDimension;
-  if (a->GetLargestPossibleRegion().GetSize() != b->GetLargestPossibleRegion().GetSize())
-  {
-    return false;
-  }
-  for (unsigned int r = 0; r < D; ++r)
-  {
-    const double tol = 1e-6 * std::max(1.0, std::abs(a->GetSpacing()[r]));
-    if (std::abs(a->GetSpacing()[r] - b->GetSpacing()[r]) > tol || std::abs(a->GetOrigin()[r] - b->GetOrigin()[r]) > 1e-4)
-    {
-      return false;
-    }
-    for (unsigned int c = 0; c < D; ++c)
-    {
-      if (std::abs(a->GetDirection()[r][c] - b->GetDirection()[r][c]) > 1e-6)
-      {
-        return false;
-      }
-    }
-  }
-  return true;
-}
-
 /** Resample an image onto the grid of a reference image through physical space (identity transform). */
 template <typename TImage, typename TReference>
 typename TImage::Pointer
@@ -446,7 +418,7 @@ Run(const Options & opt)
       image->Modified();
     }
   }
-  const bool movingResampled = !SameGrid(fixed.GetPointer(), moving.GetPointer());
+  const bool movingResampled = !dmrtools::SameGrid<D>(fixed.GetPointer(), moving.GetPointer());
   if (movingResampled)
   {
     // a moving image on another grid is brought onto the fixed grid first (linear, outside = its minimum)
@@ -468,7 +440,7 @@ Run(const Options & opt)
     {
       throw UsageError("cannot read --fixed-mask: " + std::string(e.GetDescription()));
     }
-    if (!SameGrid(fixed.GetPointer(), mask.GetPointer()))
+    if (!dmrtools::SameGrid<D>(fixed.GetPointer(), mask.GetPointer()))
     {
       mask = ResampleOnto(mask.GetPointer(), fixed.GetPointer(), true, 0);
     }
@@ -548,7 +520,7 @@ Run(const Options & opt)
     {
       throw UsageError("cannot read --truth-displacement: " + std::string(e.GetDescription()));
     }
-    if (!SameGrid(fixed.GetPointer(), truth.GetPointer()))
+    if (!dmrtools::SameGrid<D>(fixed.GetPointer(), truth.GetPointer()))
     {
       throw UsageError("--truth-displacement must lie on the fixed image grid: " + opt.truthDisplacement);
     }
