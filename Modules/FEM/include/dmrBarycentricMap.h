@@ -107,74 +107,66 @@ public:
           }
           scale[0] += scale[r + 1];
         }
+        // one row (fixed indices 1..D-1) at a time
         int64_t idx[D];
         for (unsigned int k = 0; k < D; ++k)
         {
           idx[k] = lo[k];
         }
-        int64_t rowEnd = hi[0];
         while (true)
         {
-          if (idx[0] == lo[0])
+          // the span of this row where lambda_v(i) = lambda_v(lo) + slope_v (i - lo) >= -1e-9 for all v, widened by
+          // one pixel on each side against rounding; a flat coordinate only empties the row when clearly < 0
+          idx[0] = lo[0];
+          double lambda[NumberOfVertices];
+          Barycentric(inv, x0, idx, lambda);
+          double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
+          bool   empty = false;
+          for (unsigned int v = 0; v < NumberOfVertices; ++v)
           {
-            // the span of this row where lambda_v(i) = lambda_v(lo) + slope_v (i - lo) >= -1e-9 for all v, widened
-            // by one pixel on each side against rounding; a flat coordinate only empties the row when clearly < 0
-            double lambda[NumberOfVertices];
-            Barycentric(inv, x0, idx, lambda);
-            double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
-            bool   empty = false;
-            for (unsigned int v = 0; v < NumberOfVertices; ++v)
+            if (std::abs(slope[v]) <= 1e-9 * scale[v])
             {
-              if (std::abs(slope[v]) <= 1e-9 * scale[v])
-              {
-                empty = empty || lambda[v] < -1e-6;
-                continue;
-              }
-              const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
-              if (slope[v] > 0.0)
-              {
-                first = std::max(first, std::floor(at) - 1.0);
-              }
-              else
-              {
-                last = std::min(last, std::ceil(at) + 1.0);
-              }
+              empty = empty || lambda[v] < -1e-6;
+              continue;
             }
-            if (empty || first > last)
+            const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
+            if (slope[v] > 0.0)
             {
-              idx[0] = hi[0]; // nothing in this row: go to the next one
-              rowEnd = hi[0] - 1;
+              first = std::max(first, std::floor(at) - 1.0);
             }
             else
             {
-              idx[0] = static_cast<int64_t>(first);
-              rowEnd = static_cast<int64_t>(last);
+              last = std::min(last, std::ceil(at) + 1.0);
             }
           }
-          double lambda[NumberOfVertices];
-          Barycentric(inv, x0, idx, lambda);
-          bool inside = true;
-          for (unsigned int v = 0; v < NumberOfVertices; ++v)
+          const int64_t rowEnd = empty ? lo[0] - 1 : static_cast<int64_t>(last);
+          for (idx[0] = static_cast<int64_t>(first); idx[0] <= rowEnd; ++idx[0])
           {
-            inside = inside && lambda[v] >= -1e-9;
-          }
-          if (inside && idx[0] <= rowEnd)
-          {
-            size_t p = 0;
-            for (unsigned int k = 0; k < D; ++k)
+            // the same test as a scan of the whole bounding box
+            Barycentric(inv, x0, idx, lambda);
+            bool inside = true;
+            for (unsigned int v = 0; v < NumberOfVertices; ++v)
             {
-              p += static_cast<size_t>(idx[k]) * grid.stride[k];
+              inside = inside && lambda[v] >= -1e-9;
             }
-            int32_t current = owner[p].load(std::memory_order_relaxed);
-            const int32_t mine = static_cast<int32_t>(e);
-            while (mine < current && !owner[p].compare_exchange_weak(current, mine, std::memory_order_relaxed))
+            if (inside)
             {
+              size_t p = 0;
+              for (unsigned int k = 0; k < D; ++k)
+              {
+                p += static_cast<size_t>(idx[k]) * grid.stride[k];
+              }
+              int32_t       current = owner[p].load(std::memory_order_relaxed);
+              const int32_t mine = static_cast<int32_t>(e);
+              while (mine < current && !owner[p].compare_exchange_weak(current, mine, std::memory_order_relaxed))
+              {
+              }
             }
           }
-          unsigned int k = 0;
+          unsigned int k = 1;
           for (; k < D; ++k)
           {
-            if (++idx[k] <= (k == 0 ? rowEnd : hi[k]))
+            if (++idx[k] <= hi[k])
             {
               break;
             }
