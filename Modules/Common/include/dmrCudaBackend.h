@@ -20,6 +20,7 @@
 
 #include "DynamicMeshRegistrationExport.h"
 #include <string>
+#include <utility>
 
 /** Plain C++ launcher API of the CUDA back-end (no CUDA or ITK types): see STYLE.md section 4.
  * Compiled from Common/cuda/dmrCudaDevice.cu when DMR_USE_CUDA=ON, from Common/src/dmrCudaStub.cxx otherwise. */
@@ -29,6 +30,28 @@ namespace dmr
 {
 namespace cuda
 {
+/** Outcome of a launcher call: an empty message means success. Launchers never exit or print; the filters turn a
+ * failed Status into an itk::ExceptionObject. */
+struct Status
+{
+  std::string message;
+  bool
+  Ok() const
+  {
+    return message.empty();
+  }
+  static Status
+  Success()
+  {
+    return Status{};
+  }
+  static Status
+  Error(std::string text)
+  {
+    return Status{ text.empty() ? std::string("unknown CUDA error") : std::move(text) };
+  }
+};
+
 /** True when the library was built with CUDA and a usable device is present. */
 DynamicMeshRegistration_EXPORT bool
 DeviceAvailable();
