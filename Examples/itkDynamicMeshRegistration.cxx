@@ -556,12 +556,16 @@ Run(const Options & opt)
     }
     method->SetBackend(Backend::CUDA);
   }
-  else
+  else if (opt.backend == "cpu")
   {
     method->SetBackend(Backend::CPU);
-    if (opt.backend == "auto" && itk::dmr::cuda::DeviceAvailable())
+  }
+  else
+  {
+    method->SetBackend(Backend::Auto);
+    if (!itk::dmr::cuda::DeviceAvailable())
     {
-      std::cerr << "note: a CUDA device is present but this version runs the registration on the CPU\n";
+      std::cout << "note: running on the CPU (" << itk::dmr::cuda::UnavailableReason() << ")\n";
     }
   }
   std::string meshMode = opt.mesh;
@@ -726,6 +730,12 @@ Run(const Options & opt)
        << "  \"levels\": " << opt.levels << ",\n"
        << "  \"mesh_mode\": \"" << meshMode << "\",\n"
        << "  \"backend\": \"" << method->GetBackendUsed() << "\",\n"
+       << "  \"device\": "
+       << (method->GetBackendUsed() == itk::DynamicMeshRegistrationEnums::Backend::CUDA
+             ? "\"" + JsonEscape(itk::dmr::cuda::DeviceDescription()) + "\""
+             : std::string("null"))
+       << ",\n"
+       << "  \"gpu_memory_mb\": " << static_cast<double>(method->GetDeviceBytes()) / (1024.0 * 1024.0) << ",\n"
        << "  \"threads\": " << method->GetNumberOfWorkUnits() << ",\n"
        << "  \"lambda\": " << opt.lambda << ",\n"
        << "  \"mu\": " << opt.mu << ",\n"

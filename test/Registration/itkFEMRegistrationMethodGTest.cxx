@@ -294,3 +294,31 @@ TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)
   }
   EXPECT_LT(maxU, 1e-3);
 }
+
+TEST(FEMRegistrationMethod, BackendWithoutDevice)
+{
+  if (itk::dmr::cuda::DeviceAvailable())
+  {
+    GTEST_SKIP() << "a CUDA device is present (test/Cuda compares the back-ends)";
+  }
+  // CUDA requested: a clear exception naming the reason, no output
+  auto cuda = SmallRegistration(MeshMode::Dynamic, 3);
+  cuda->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CUDA);
+  try
+  {
+    cuda->Update();
+    FAIL() << "Backend CUDA without a device must throw";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("CUDA back-end was requested but"), std::string::npos)
+      << e.GetDescription();
+  }
+  // Auto: the CPU path, and it says so
+  auto autoBackend = SmallRegistration(MeshMode::Dynamic, 3);
+  autoBackend->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::Auto);
+  autoBackend->Update();
+  EXPECT_EQ(autoBackend->GetBackendUsed(), itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  EXPECT_EQ(autoBackend->GetDeviceBytes(), 0u);
+  EXPECT_LT(autoBackend->GetFinalSSD(), autoBackend->GetHistory().front().ssd);
+}

@@ -130,6 +130,37 @@ public:
     return m_GridForce;
   }
 
+  /** One pyramid level: images at the level's resolution and the affine maps from fine-grid indices. */
+  struct PyramidLevel
+  {
+    GridType           fixedGrid;
+    GridType           movingGrid;
+    std::vector<float> fixed;
+    std::vector<float> moving;
+    std::vector<float> movingGradient; // grid frame of the fixed image, per mm, D interleaved
+    // fixed-level continuous index = FA * fineIndex + Fc
+    double FA[ImageDimension][ImageDimension];
+    double Fc[ImageDimension];
+    // moving-level continuous index = MA * fineIndex + Mc + MB * u_phys
+    double MA[ImageDimension][ImageDimension];
+    double Mc[ImageDimension];
+    double MB[ImageDimension][ImageDimension];
+  };
+
+  /** The pyramids of the current inputs (built on first use, kept while the images are unchanged): what the GPU
+   * back-end uploads. Level l weighs (pixels of level l) / (fixed pixels) in the MSSD (see GenerateData). */
+  const std::vector<PyramidLevel> &
+  GetPyramid()
+  {
+    this->BuildPyramids();
+    return m_Levels;
+  }
+
+  /** alpha for a given mean |f|^2 (paper 5.1: AlphaFactor x mean, with the floor used when the images match), or the
+   * fixed Alpha when UseFixedAlpha is on. Needs the pyramids (GetPyramid or Update). */
+  double
+  ComputeAlpha(double meanSquaredForce) const;
+
   /** Warp the (full-resolution, unsmoothed) moving image by the given field onto the fixed grid. */
   void
   WarpMovingImage(const DisplacementFieldType * field, std::vector<float> & out) const;
@@ -152,23 +183,6 @@ protected:
   MakeOutput(DataObjectPointerArraySizeType idx) override;
 
 private:
-  /** One pyramid level: images at the level's resolution and the affine maps from fine-grid indices. */
-  struct Level
-  {
-    GridType           fixedGrid;
-    GridType           movingGrid;
-    std::vector<float> fixed;
-    std::vector<float> moving;
-    std::vector<float> movingGradient; // grid frame of the fixed image, per mm, D interleaved
-    // fixed-level continuous index = FA * fineIndex + Fc
-    double FA[ImageDimension][ImageDimension];
-    double Fc[ImageDimension];
-    // moving-level continuous index = MA * fineIndex + Mc + MB * u_phys
-    double MA[ImageDimension][ImageDimension];
-    double Mc[ImageDimension];
-    double MB[ImageDimension][ImageDimension];
-  };
-
   void
   BuildPyramids();
 
@@ -181,7 +195,7 @@ private:
   double       m_SSD{ 0.0 };
   double       m_MeanSquaredForce{ 0.0 };
 
-  std::vector<Level> m_Levels;
+  std::vector<PyramidLevel> m_Levels;
   ModifiedTimeType   m_PyramidTime{ 0 };
   unsigned int       m_PyramidLevels{ 0 };
   const void *       m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from

@@ -266,7 +266,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
 
   for (unsigned int l = 0; l < m_NumberOfLevels; ++l)
   {
-    Level & L = m_Levels[l];
+    PyramidLevel & L = m_Levels[l];
     auto    f = makeLevel(fixed, l);
     auto    m = makeLevel(moving, l);
     L.fixedGrid = GridType::FromImage(f);
@@ -387,7 +387,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
           double f[D] = {};
           for (unsigned int l = 0; l < nLevels; ++l)
           {
-            const Level & L = levels[l];
+            const PyramidLevel & L = levels[l];
             double        cf[D], cm[D];
             for (unsigned int r = 0; r < D; ++r)
             {
@@ -460,20 +460,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   m_MSSD = total.mssd;
   m_SSD = total.ssd;
   m_MeanSquaredForce = total.f2 / static_cast<double>(total.inside);
-  if (!m_UseFixedAlpha)
-  {
-    // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the
-    // density would vanish: fall back to a floor relative to the squared force scale of the intensity range.
-    double minSpacing = grid.spacing[0];
-    for (unsigned int k = 1; k < D; ++k)
-    {
-      minSpacing = std::min(minSpacing, grid.spacing[k]);
-    }
-    const double forceScale = 2.0 * m_IntensityRange * m_IntensityRange / minSpacing;
-    // (constant images: any positive value gives the same uniform density; keep it representable as float)
-    const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
-    m_Alpha = std::max(m_AlphaFactor * m_MeanSquaredForce, floor);
-  }
+  m_Alpha = this->ComputeAlpha(m_MeanSquaredForce);
   const double alpha = m_Alpha;
   dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
     for (size_t p = b; p < e; ++p)
@@ -485,6 +472,28 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
 }
 
 template <typename TF, typename TM, typename TD, typename TO>
+double
+DensityFieldFilter<TF, TM, TD, TO>::ComputeAlpha(double meanSquaredForce) const
+{
+  if (m_UseFixedAlpha)
+  {
+    return m_Alpha;
+  }
+  // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the
+  // density would vanish: fall back to a floor relative to the squared force scale of the intensity range.
+  const auto spacing = this->GetFixedImage()->GetSpacing();
+  double     minSpacing = spacing[0];
+  for (unsigned int k = 1; k < ImageDimension; ++k)
+  {
+    minSpacing = std::min(minSpacing, static_cast<double>(spacing[k]));
+  }
+  const double forceScale = 2.0 * m_IntensityRange * m_IntensityRange / minSpacing;
+  // (constant images: any positive value gives the same uniform density; keep it representable as float)
+  const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
+  return std::max(m_AlphaFactor * meanSquaredForce, floor);
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
 void
 DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType * field, std::vector<float> & out) const
 {
@@ -493,7 +502,7 @@ DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType 
   {
     itkExceptionMacro("WarpMovingImage needs the pyramids: call Update() first");
   }
-  const Level &  L = m_Levels[0];
+  const PyramidLevel & L = m_Levels[0];
   const GridType grid = m_Levels[0].fixedGrid;
   out.resize(grid.numberOfPixels);
   const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
@@ -521,7 +530,7 @@ template <typename TF, typename TM, typename TD, typename TO>
 void
 DensityFieldFilter<TF, TM, TD, TO>::ReleaseInternalBuffers()
 {
-  std::vector<Level>().swap(m_Levels);
+  std::vector<PyramidLevel>().swap(m_Levels);
   std::vector<float>().swap(m_GridForce);
   m_PyramidTime = 0;
   m_PyramidFixed = nullptr;

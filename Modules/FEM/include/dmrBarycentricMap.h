@@ -65,33 +65,15 @@ public:
       const size_t end = std::min(nElements, (c + 1) * chunk);
       for (size_t e = c * chunk; e < end; ++e)
       {
-        double inv[D][D], x0[D];
-        mesh.EdgeMatrix(e, x0, &inv);
-        std::copy(&inv[0][0], &inv[0][0] + D * D, affine.data() + e * affineSize);
-        std::copy(x0, x0 + D, affine.data() + e * affineSize + D * D);
         int64_t lo[D], hi[D];
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          double mn = std::numeric_limits<double>::max(), mx = -mn;
-          for (unsigned int v = 0; v < NumberOfVertices; ++v)
-          {
-            const double q = mesh.nodes[mesh.elements[e][v] * D + k] / grid.spacing[k];
-            mn = std::min(mn, q);
-            mx = std::max(mx, q);
-          }
-          lo[k] = std::max<int64_t>(0, static_cast<int64_t>(std::ceil(mn - 1e-6)));
-          hi[k] = std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(std::floor(mx + 1e-6)));
-          if (lo[k] > hi[k])
-          {
-            lo[0] = 1;
-            hi[0] = 0;
-            break;
-          }
-        }
+        ElementAffine(grid, mesh, e, affine.data() + e * affineSize, lo, hi);
         if (lo[0] > hi[0])
         {
           continue;
         }
+        double inv[D][D], x0[D];
+        std::copy(affine.data() + e * affineSize, affine.data() + e * affineSize + D * D, &inv[0][0]);
+        std::copy(affine.data() + e * affineSize + D * D, affine.data() + (e + 1) * affineSize, x0);
         // slope of every barycentric coordinate along axis 0 (per pixel) and its scale, for the row spans
         double slope[NumberOfVertices], scale[NumberOfVertices];
         slope[0] = 0.0;
@@ -223,6 +205,36 @@ public:
                                                            "the image domain");
     }
     m_Mesh = &mesh;
+  }
+
+  /** Rasterisation set-up of element e: its inverse edge matrix (D x D, row-major) then its first vertex into
+   * affine[0 .. D*D+D), and the pixel bounding box [lo, hi] (empty: lo[0] > hi[0]). Shared with the CUDA back-end so
+   * both rasterise from the same numbers. */
+  static void
+  ElementAffine(const Grid<D> & grid, const SimplexMesh<D> & mesh, size_t e, double * affine, int64_t * lo, int64_t * hi)
+  {
+    double inv[D][D], x0[D];
+    mesh.EdgeMatrix(e, x0, &inv);
+    std::copy(&inv[0][0], &inv[0][0] + D * D, affine);
+    std::copy(x0, x0 + D, affine + D * D);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      double mn = std::numeric_limits<double>::max(), mx = -mn;
+      for (unsigned int v = 0; v < NumberOfVertices; ++v)
+      {
+        const double q = mesh.nodes[mesh.elements[e][v] * D + k] / grid.spacing[k];
+        mn = std::min(mn, q);
+        mx = std::max(mx, q);
+      }
+      lo[k] = std::max<int64_t>(0, static_cast<int64_t>(std::ceil(mn - 1e-6)));
+      hi[k] = std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(std::floor(mx + 1e-6)));
+      if (lo[k] > hi[k])
+      {
+        lo[0] = 1;
+        hi[0] = 0;
+        return;
+      }
+    }
   }
 
   const std::vector<int32_t> &

@@ -28,6 +28,8 @@
 #include "itkLinearElasticFEMSolver.h"
 #include "dmrBarycentricMap.h"
 #include "dmrFieldOps.h"
+#include "dmrRegistrationBackend.h"
+#include <chrono>
 
 namespace itk
 {
@@ -157,6 +159,8 @@ public:
   itkSetEnumMacro(Backend, BackendEnum);
   itkGetEnumMacro(Backend, BackendEnum);
   itkGetConstMacro(BackendUsed, BackendEnum);
+  /** Device memory the CUDA back-end held at its peak (bytes; 0 on the CPU path). */
+  itkGetConstMacro(DeviceBytes, SizeValueType);
 
   /** Results. */
   itkGetConstMacro(Beta, double);
@@ -223,6 +227,13 @@ protected:
 private:
   void
   WriteGridFieldToImage(const std::vector<float> & grid, DisplacementFieldType * image) const;
+  void
+  MakeTransformOutput();
+  /** The iteration loop with every per-pixel stage on the GPU (BackendUsed CUDA). */
+  void
+  GenerateDataCUDA(std::chrono::steady_clock::time_point tStart);
+  void
+  UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh);
 
   unsigned int  m_NumberOfIterations{ 100 };
   SizeValueType m_NumberOfNodes{ 100 };
@@ -238,6 +249,7 @@ private:
   unsigned int  m_RegularGridSize{ 0 };
   BackendEnum   m_Backend{ BackendEnum::Auto };
   BackendEnum   m_BackendUsed{ BackendEnum::CPU };
+  size_t        m_DeviceBytes{ 0 };
 
   double                       m_Beta{ 0.0 };
   unsigned int                 m_CurrentIteration{ 0 };

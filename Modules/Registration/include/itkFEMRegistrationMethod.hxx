@@ -21,6 +21,7 @@
 #include "itkFEMRegistrationMethod.h"
 #include "itkImageRegionConstIterator.h"
 #include "dmrCudaBackend.h"
+#include "dmrRegistrationBackend.h"
 #include "dmrImageMetrics.h"
 #include <chrono>
 
@@ -115,11 +116,9 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
   {
     itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
   }
-  if (m_Backend == BackendEnum::CUDA)
+  if (m_Backend == BackendEnum::CUDA && !dmr::cuda::DeviceAvailable())
   {
-    itkExceptionMacro("the CUDA back-end of FEMRegistrationMethod is not available: "
-                      << (dmr::cuda::DeviceAvailable() ? std::string("its kernels are not part of this version")
-                                                       : dmr::cuda::UnavailableReason()));
+    itkExceptionMacro("the CUDA back-end was requested but " << dmr::cuda::UnavailableReason());
   }
 }
 
@@ -189,6 +188,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
                                                                  << ": there is no force to register with (the "
                                                                     "density alpha would be 0)");
     }
+  }
+  if (m_Backend != BackendEnum::CPU && dmr::cuda::DeviceAvailable())
+  {
+    m_BackendUsed = BackendEnum::CUDA;
+    this->GenerateDataCUDA(tStart);
+    return;
   }
   m_BackendUsed = BackendEnum::CPU;
   MultiThreaderBase * threader = this->GetMultiThreader();
@@ -380,7 +385,18 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_CVTFilter->GetOutput()->ReleaseData();
   m_Labels = nullptr;
 
+  this->MakeTransformOutput();
+  m_Timing.total = seconds(tStart, Clock::now());
+  this->UpdateProgress(1.0f);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::MakeTransformOutput()
+{
   // transform output (double field, as ResampleImageFilter expects)
+  constexpr unsigned int D = ImageDimension;
+  const DisplacementFieldType * field = this->GetDisplacementField();
   using TransformFieldType = typename TransformType::DisplacementFieldType;
   auto transformField = TransformFieldType::New();
   transformField->CopyInformation(field);
@@ -388,6 +404,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   transformField->Allocate();
   const auto * src = field->GetBufferPointer();
   auto *       dst = transformField->GetBufferPointer();
+  const size_t n = field->GetLargestPossibleRegion().GetNumberOfPixels();
   for (size_t p = 0; p < n; ++p)
   {
     for (unsigned int k = 0; k < D; ++k)
@@ -398,6 +415,300 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   auto transform = TransformType::New();
   transform->SetDisplacementField(transformField);
   this->GetTransformOutput()->Set(transform);
+}
+
+namespace dmr
+{
+/** Throws an itk::ExceptionObject for a failed CUDA launcher. */
+inline void
+ThrowOnError(const cuda::Status & status, const char * stage)
+{
+  if (!status.Ok())
+  {
+    itkGenericExceptionMacro("CUDA back-end, " << stage << ": " << status.message);
+  }
+}
+} // namespace dmr
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh)
+{
+  constexpr unsigned int D = ImageDimension;
+  constexpr size_t       affineSize = D * D + D;
+  const auto             grid = dmr::Grid<D>::FromImage(this->GetFixedImage());
+  const size_t           nElements = mesh.elements.size();
+  std::vector<double>    affine(nElements * affineSize);
+  std::vector<int64_t>   bounds(nElements * 2 * D);
+  std::vector<int32_t>   elements(nElements * (D + 1));
+  dmr::ParallelForChunks(
+    this->GetMultiThreader(),
+    nElements,
+    [&](size_t b, size_t e) {
+      for (size_t i = b; i < e; ++i)
+      {
+        dmr::BarycentricMap<D>::ElementAffine(
+          grid, mesh, i, affine.data() + i * affineSize, bounds.data() + i * 2 * D, bounds.data() + i * 2 * D + D);
+        for (unsigned int v = 0; v <= D; ++v)
+        {
+          elements[i * (D + 1) + v] = static_cast<int32_t>(mesh.elements[i][v]);
+        }
+      }
+    },
+    256);
+  dmr::ThrowOnError(
+    context.SetMesh(mesh.nodes.data(), mesh.NumberOfNodes(), elements.data(), nElements, affine.data(), bounds.data()),
+    "barycentric rasterisation");
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::time_point tStart)
+{
+  constexpr unsigned int D = ImageDimension;
+  using Clock = std::chrono::steady_clock;
+  auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
+
+  const FixedImageType *  fixed = this->GetFixedImage();
+  const MovingImageType * moving = this->GetMovingImage();
+  MultiThreaderBase *     threader = this->GetMultiThreader();
+  const auto              grid = dmr::Grid<D>::FromImage(fixed);
+  const size_t            n = grid.numberOfPixels;
+  const double            dV = grid.PixelVolume();
+
+  DisplacementFieldType * field = this->GetDisplacementField();
+  field->SetBufferedRegion(field->GetLargestPossibleRegion());
+  field->Allocate();
+  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
+
+  // the pyramids are built once on the CPU by the density filter (the same levels as the CPU path) and uploaded
+  auto t0 = Clock::now();
+  m_DensityFilter->SetFixedImage(fixed);
+  m_DensityFilter->SetMovingImage(moving);
+  m_DensityFilter->SetDisplacementField(nullptr);
+  m_DensityFilter->SetFixedMask(this->GetFixedMask());
+  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
+  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
+  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  const auto & pyramid = m_DensityFilter->GetPyramid();
+  const auto & dirF = fixed->GetDirection();
+  std::vector<dmr::cuda::PyramidLevelView> views(pyramid.size());
+  for (size_t l = 0; l < pyramid.size(); ++l)
+  {
+    const auto &                L = pyramid[l];
+    dmr::cuda::PyramidLevelView & v = views[l];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      v.fixedSize[r] = L.fixedGrid.size[r];
+      v.movingSize[r] = L.movingGrid.size[r];
+      v.Fc[r] = L.Fc[r];
+      v.Mc[r] = L.Mc[r];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        v.FA[r][k] = L.FA[r][k];
+        v.MA[r][k] = L.MA[r][k];
+        double mg = 0.0; // MB maps a physical displacement; w is in the grid frame: u_phys = Direction w
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          mg += L.MB[r][j] * dirF[j][k];
+        }
+        v.MG[r][k] = mg;
+      }
+    }
+    v.fixed = L.fixed.data();
+    v.moving = L.moving.data();
+    v.movingGradient = L.movingGradient.data();
+    v.weight = static_cast<double>(L.fixedGrid.numberOfPixels) / static_cast<double>(n);
+  }
+  std::vector<uint8_t> mask;
+  if (const auto * maskImage = this->GetFixedMask())
+  {
+    if (maskImage->GetLargestPossibleRegion().GetSize() != fixed->GetLargestPossibleRegion().GetSize())
+    {
+      itkExceptionMacro("the fixed mask must lie on the fixed image grid");
+    }
+    mask.resize(n);
+    const auto * m = maskImage->GetBufferPointer();
+    for (size_t p = 0; p < n; ++p)
+    {
+      mask[p] = m[p] != 0 ? 1 : 0;
+    }
+  }
+  dmr::cuda::RegistrationContext context;
+  dmr::ThrowOnError(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
+                    "initialisation");
+  std::vector<uint8_t>().swap(mask);
+  m_Timing.registration += seconds(t0, Clock::now());
+
+  m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
+  m_CVTFilter->SetEpsilon(m_CVTEpsilon);
+  m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
+  m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  m_CVTFilter->SetBackend(BackendEnum::CPU); // the swap optimiser reads the host density below
+  m_Solver->SetLambda(m_Lambda);
+  m_Solver->SetMu(m_Mu);
+  m_Labels = nullptr;
+  m_History.clear();
+  m_Beta = 0.0;
+  m_CurrentMesh = nullptr;
+  ++m_CurrentMeshVersion;
+  std::vector<double> nodalForce, nodalU, nodalW;
+  // host copy of the density, read by the CPU stages of the dynamic mesh
+  typename DensityImageType::Pointer density;
+
+  if (m_MeshMode != MeshModeEnum::Dynamic)
+  {
+    t0 = Clock::now();
+    if (m_MeshMode == MeshModeEnum::Regular)
+    {
+      unsigned int perAxis = m_RegularGridSize;
+      if (perAxis == 0)
+      {
+        perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
+      }
+      std::array<size_t, D> nodes;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
+      }
+      m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
+    }
+    else
+    {
+      m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), fixed);
+    }
+    m_CurrentMesh = &m_StaticSimplexMesh;
+    m_Timing.meshConstruction += seconds(t0, Clock::now());
+    t0 = Clock::now();
+    this->UploadMesh(context, m_StaticSimplexMesh);
+    m_Timing.barycentric += seconds(t0, Clock::now());
+    t0 = Clock::now();
+    m_Solver->SetMesh(m_StaticSimplexMesh);
+    m_Timing.registration += seconds(t0, Clock::now());
+  }
+
+  for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
+  {
+    if (this->GetAbortGenerateData())
+    {
+      break;
+    }
+    m_CurrentIteration = it;
+    IterationRecord record{};
+    record.iteration = it;
+
+    // 1. force and density of T vs S o W, on the device
+    t0 = Clock::now();
+    dmr::cuda::ForceStatistics statistics;
+    dmr::ThrowOnError(context.ComputeForce(statistics), "force");
+    if (statistics.inside == 0)
+    {
+      itkExceptionMacro("the fixed mask is empty: no pixel to register");
+    }
+    record.mssd = statistics.mssd * dV;
+    record.ssd = statistics.ssd * dV;
+    const double alpha =
+      m_DensityFilter->ComputeAlpha(statistics.sumSquaredForce / static_cast<double>(statistics.inside));
+    dmr::ThrowOnError(context.AddToDensity(alpha), "density");
+    m_Timing.registration += seconds(t0, Clock::now());
+
+    // 2. dynamic mesh
+    if (m_MeshMode == MeshModeEnum::Dynamic)
+    {
+      t0 = Clock::now();
+      if (density.IsNull())
+      {
+        density = DensityImageType::New();
+        density->CopyInformation(fixed);
+        density->SetRegions(fixed->GetLargestPossibleRegion());
+        density->Allocate();
+      }
+      dmr::ThrowOnError(context.DownloadDensity(density->GetBufferPointer()), "density download");
+      density->Modified();
+      m_Timing.tessellationOptimization += seconds(t0, Clock::now());
+      m_CVTFilter->SetInput(density);
+      const bool reinitialize =
+        m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
+      m_CVTFilter->SetInitialLabels(m_Labels && !reinitialize ? m_Labels.GetPointer() : nullptr);
+      m_CVTFilter->Update();
+      m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
+      m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
+      record.sweeps = m_CVTFilter->GetNumberOfSweeps();
+      typename LabelImageType::Pointer labels = m_CVTFilter->GetOutput();
+      labels->DisconnectPipeline();
+      m_Labels = labels;
+      auto sites = CVTFilterType::SitesType::New();
+      sites->SetPoints(m_CVTFilter->GetSites()->GetPoints());
+
+      t0 = Clock::now();
+      m_DualMeshFilter->SetInput(m_Labels);
+      m_DualMeshFilter->SetSites(sites);
+      m_DualMeshFilter->Modified();
+      m_DualMeshFilter->Update();
+      m_CurrentMesh = &m_DualMeshFilter->GetSimplexMesh();
+      ++m_CurrentMeshVersion;
+      m_Timing.meshConstruction += seconds(t0, Clock::now());
+
+      t0 = Clock::now();
+      this->UploadMesh(context, *m_CurrentMesh);
+      m_Timing.barycentric += seconds(t0, Clock::now());
+      t0 = Clock::now();
+      m_Solver->SetMesh(*m_CurrentMesh);
+      m_Timing.registration += seconds(t0, Clock::now());
+    }
+    record.nodes = m_CurrentMesh->NumberOfNodes();
+
+    // 3-5. nodal forces (device), solve (host, the mesh is small), beta, interpolation and update (device)
+    t0 = Clock::now();
+    const SimplexMeshType & mesh = *m_CurrentMesh;
+    nodalForce.resize(mesh.NumberOfNodes() * D);
+    dmr::ThrowOnError(context.GatherForce(dV, nodalForce.data()), "force gathering");
+    m_Solver->Solve(nodalForce, nodalU);
+    double fKf = 0.0;
+    for (size_t i = 0; i < nodalU.size(); ++i)
+    {
+      fKf += nodalForce[i] * nodalU[i];
+    }
+    if (it == 1 || m_Beta == 0.0)
+    {
+      if (!(fKf > 0.0) || !(record.mssd > 0.0))
+      {
+        m_History.push_back(record);
+        m_Timing.registration += seconds(t0, Clock::now());
+        break;
+      }
+      m_Beta = fKf / (2.0 * m_EnergyRatio * record.mssd);
+    }
+    nodalW.resize(mesh.NumberOfNodes() * D);
+    dmr::ThrowOnError(context.SampleFieldAtNodes(nodalW.data()), "nodal sampling");
+    record.elastic = m_Solver->ElasticEnergy(nodalW);
+    record.total = record.mssd + m_Beta * record.elastic;
+    unsigned int squarings = 0;
+    dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), 1.0 / m_Beta, record.maxUpdate, squarings), "update");
+    m_Timing.registration += seconds(t0, Clock::now());
+
+    m_History.push_back(record);
+    this->InvokeEvent(IterationEvent());
+    this->UpdateProgress(static_cast<float>(it) / static_cast<float>(m_NumberOfIterations));
+  }
+
+  // final similarity, and the field back to the host (the only full-volume download of the run)
+  t0 = Clock::now();
+  dmr::cuda::ForceStatistics statistics;
+  dmr::ThrowOnError(context.ComputeForce(statistics), "final force");
+  m_FinalSSD = statistics.ssd * dV;
+  m_FinalMSSD = statistics.mssd * dV;
+  {
+    std::vector<float> w(n * D);
+    dmr::ThrowOnError(context.DownloadField(w.data()), "field download");
+    this->WriteGridFieldToImage(w, field);
+  }
+  m_DeviceBytes = context.AllocatedBytes();
+  m_Timing.registration += seconds(t0, Clock::now());
+  m_DensityFilter->ReleaseInternalBuffers();
+  m_CVTFilter->GetOutput()->ReleaseData();
+  m_Labels = nullptr;
+  this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
 }
@@ -421,6 +732,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "RegularGridSize: " << m_RegularGridSize << std::endl;
   os << indent << "Backend: " << m_Backend << std::endl;
   os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
+  os << indent << "DeviceBytes: " << m_DeviceBytes << std::endl;
   os << indent << "Beta: " << m_Beta << std::endl;
   os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;

@@ -1,0 +1,1056 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+/** GPU registration iteration: force over the pyramid + density, element rasterisation (barycentric owner), force
+ * gathering, nodal sampling, interpolation, exponential map by scaling and squaring and composition. Every kernel
+ * mirrors the CPU reference (DensityFieldFilter, BarycentricMap, dmrFieldOps) in double arithmetic; the library
+ * compiles these files with --fmad=false so products are rounded as on the CPU. */
+#include "dmrRegistrationBackend.h"
+#include "dmrCudaUtils.cuh"
+
+#include <algorithm>
+#include <climits>
+#include <cmath>
+#include <cstring>
+
+namespace itk
+{
+namespace dmr
+{
+namespace cuda
+{
+namespace
+{
+constexpr int MaxLevels = 8;
+constexpr int Threads = 256;
+
+struct DeviceGrid
+{
+  int       size[3];
+  long long stride[3];
+  double    spacing[3];
+  long long n;
+};
+
+struct DeviceLevel
+{
+  int           fixedSize[3];
+  long long     fixedStride[3];
+  int           movingSize[3];
+  long long     movingStride[3];
+  const float * fixed;
+  const float * moving;
+  const float * gradient;
+  double        FA[3][3], Fc[3], MA[3][3], Mc[3], MG[3][3];
+  double        weight;
+};
+
+struct DeviceLevels
+{
+  DeviceLevel level[MaxLevels];
+  int         count;
+};
+
+template <int D>
+__device__ inline void
+IndexOf(const DeviceGrid & g, long long p, int * idx)
+{
+  for (int k = 0; k < D; ++k)
+  {
+    idx[k] = static_cast<int>(p % g.size[k]);
+    p /= g.size[k];
+  }
+}
+
+/** dmr::InterpolateAdd on the device: multilinear, clamped to the border. */
+template <int D, int NC>
+__device__ inline void
+InterpolateAdd(const int * size, const long long * stride, const float * data, const double * cidx, double w, double * out)
+{
+  long long offset0 = 0;
+  long long step[D];
+  double    frac[D];
+  for (int k = 0; k < D; ++k)
+  {
+    const double hi = static_cast<double>(size[k] - 1);
+    const double c = cidx[k] < 0.0 ? 0.0 : (cidx[k] > hi ? hi : cidx[k]);
+    double       f = floor(c);
+    long long    i = static_cast<long long>(f);
+    if (i >= size[k] - 1)
+    {
+      i = size[k] > 1 ? size[k] - 2 : 0;
+      f = static_cast<double>(i);
+    }
+    offset0 += i * stride[k];
+    step[k] = size[k] > 1 ? stride[k] : 0;
+    frac[k] = c - f;
+  }
+  for (unsigned int corner = 0; corner < (1u << D); ++corner)
+  {
+    double    weight = w;
+    long long offset = offset0;
+    for (int k = 0; k < D; ++k)
+    {
+      if (corner & (1u << k))
+      {
+        weight *= frac[k];
+        offset += step[k];
+      }
+      else
+      {
+        weight *= 1.0 - frac[k];
+      }
+    }
+    if (weight != 0.0)
+    {
+      const float * v = data + offset * NC;
+      for (int c = 0; c < NC; ++c)
+      {
+        out[c] += weight * static_cast<double>(v[c]);
+      }
+    }
+  }
+}
+
+/** Sum of v over the block (every thread must call); valid in thread 0. */
+__device__ inline double
+BlockSum(double v, double * shared)
+{
+  for (int o = 16; o > 0; o >>= 1)
+  {
+    v += __shfl_down_sync(0xffffffffu, v, o);
+  }
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  __syncthreads(); // shared may still be read from an earlier call
+  if (lane == 0)
+  {
+    shared[warp] = v;
+  }
+  __syncthreads();
+  double s = 0.0;
+  if (threadIdx.x == 0)
+  {
+    for (int w = 0; w < static_cast<int>(blockDim.x >> 5); ++w)
+    {
+      s += shared[w];
+    }
+  }
+  return s;
+}
+
+/** atomic max of a non-negative double (its bit pattern orders like the value). */
+__device__ inline void
+AtomicMaxNonNegative(unsigned long long * address, double v)
+{
+  atomicMax(address, static_cast<unsigned long long>(__double_as_longlong(v)));
+}
+
+template <int D>
+__global__ void
+ForceKernel(DeviceGrid g, DeviceLevels levels, const float * w, const uint8_t * mask, float * force, float * f2out, double * sums)
+{
+  __shared__ double shared[Threads / 32];
+  double            mssd = 0.0, ssd = 0.0, f2sum = 0.0, inside = 0.0;
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    if (mask && mask[p] == 0)
+    {
+      for (int k = 0; k < D; ++k)
+      {
+        force[p * D + k] = 0.0f;
+      }
+      f2out[p] = 0.0f;
+      continue;
+    }
+    inside += 1.0;
+    int idx[D];
+    IndexOf<D>(g, p, idx);
+    double u[D];
+    for (int k = 0; k < D; ++k)
+    {
+      u[k] = w[p * D + k];
+    }
+    double f[D] = {};
+    for (int l = 0; l < levels.count; ++l)
+    {
+      const DeviceLevel & L = levels.level[l];
+      double              cf[D], cm[D];
+      for (int r = 0; r < D; ++r)
+      {
+        cf[r] = L.Fc[r];
+        cm[r] = L.Mc[r];
+        for (int k = 0; k < D; ++k)
+        {
+          cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
+          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MG[r][k] * u[k];
+        }
+      }
+      double t = 0.0, s = 0.0, gr[D] = {};
+      if (l == 0)
+      {
+        t = L.fixed[p];
+      }
+      else
+      {
+        InterpolateAdd<D, 1>(L.fixedSize, L.fixedStride, L.fixed, cf, 1.0, &t);
+      }
+      InterpolateAdd<D, 1>(L.movingSize, L.movingStride, L.moving, cm, 1.0, &s);
+      InterpolateAdd<D, D>(L.movingSize, L.movingStride, L.gradient, cm, 1.0, gr);
+      const double residual = t - s;
+      mssd += L.weight * residual * residual;
+      if (l == 0)
+      {
+        ssd += residual * residual;
+      }
+      for (int k = 0; k < D; ++k)
+      {
+        f[k] += 2.0 * residual * gr[k];
+      }
+    }
+    double f2 = 0.0;
+    for (int k = 0; k < D; ++k)
+    {
+      f2 += f[k] * f[k];
+      force[p * D + k] = static_cast<float>(f[k]);
+    }
+    f2out[p] = static_cast<float>(f2);
+    f2sum += f2;
+  }
+  const double a = BlockSum(mssd, shared);
+  const double b = BlockSum(ssd, shared);
+  const double c = BlockSum(f2sum, shared);
+  const double d = BlockSum(inside, shared);
+  if (threadIdx.x == 0)
+  {
+    atomicAdd(sums + 0, a);
+    atomicAdd(sums + 1, b);
+    atomicAdd(sums + 2, c);
+    atomicAdd(sums + 3, d);
+  }
+}
+
+__global__ void
+AddKernel(float * data, long long n, double alpha)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    data[p] = static_cast<float>(data[p] + alpha);
+  }
+}
+
+/** Barycentric coordinates of the pixel at idx in an element (BarycentricMap::Barycentric). */
+template <int D>
+__device__ inline void
+Barycentric(const double * affine, const double * spacing, const int * idx, double * lambda)
+{
+  double d[D];
+  for (int k = 0; k < D; ++k)
+  {
+    d[k] = static_cast<double>(idx[k]) * spacing[k] - affine[D * D + k];
+  }
+  double rest = 1.0;
+  for (int r = 0; r < D; ++r)
+  {
+    double v = 0.0;
+    for (int c = 0; c < D; ++c)
+    {
+      v += affine[r * D + c] * d[c];
+    }
+    lambda[r + 1] = v;
+    rest -= v;
+  }
+  lambda[0] = rest;
+}
+
+/** The stored weights of BarycentricMap: clamped to [0,1], renormalised, rounded to float. */
+template <int D>
+__device__ inline void
+Weights(const double * affine, const double * spacing, const int * idx, float * weight)
+{
+  double lambda[D + 1];
+  Barycentric<D>(affine, spacing, idx, lambda);
+  double sum = 0.0;
+  for (int v = 0; v <= D; ++v)
+  {
+    lambda[v] = fmin(1.0, fmax(0.0, lambda[v]));
+    sum += lambda[v];
+  }
+  for (int v = 0; v <= D; ++v)
+  {
+    weight[v] = static_cast<float>(lambda[v] / sum);
+  }
+}
+
+/** Walks the pixels an element may own, row by row (BarycentricMap::Build's spans): one warp per row, lanes along
+ * the row. body(p, idx) is called for every pixel of the span that passes the inside test. */
+template <int D, typename TBody>
+__device__ inline void
+ForEachPixelInElement(const DeviceGrid & g, const double * affine, const long long * bounds, TBody && body)
+{
+  long long lo[D], hi[D];
+  for (int k = 0; k < D; ++k)
+  {
+    lo[k] = bounds[k];
+    hi[k] = bounds[D + k];
+  }
+  if (lo[0] > hi[0])
+  {
+    return;
+  }
+  double slope[D + 1], scale[D + 1];
+  slope[0] = 0.0;
+  scale[0] = 0.0;
+  for (int r = 0; r < D; ++r)
+  {
+    slope[r + 1] = affine[r * D + 0] * g.spacing[0];
+    slope[0] -= slope[r + 1];
+    scale[r + 1] = 0.0;
+    for (int c = 0; c < D; ++c)
+    {
+      scale[r + 1] += fabs(affine[r * D + c]) * g.spacing[c];
+    }
+    scale[0] += scale[r + 1];
+  }
+  long long rows = 1;
+  for (int k = 1; k < D; ++k)
+  {
+    rows *= hi[k] - lo[k] + 1;
+  }
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+  for (long long row = warp; row < rows; row += warps)
+  {
+    int       idx[D];
+    long long rest = row;
+    for (int k = 1; k < D; ++k)
+    {
+      const long long extent = hi[k] - lo[k] + 1;
+      idx[k] = static_cast<int>(lo[k] + rest % extent);
+      rest /= extent;
+    }
+    idx[0] = static_cast<int>(lo[0]);
+    double lambda[D + 1];
+    Barycentric<D>(affine, g.spacing, idx, lambda);
+    double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
+    bool   empty = false;
+    for (int v = 0; v <= D; ++v)
+    {
+      if (fabs(slope[v]) <= 1e-9 * scale[v])
+      {
+        empty = empty || lambda[v] < -1e-6;
+        continue;
+      }
+      const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
+      if (slope[v] > 0.0)
+      {
+        first = fmax(first, floor(at) - 1.0);
+      }
+      else
+      {
+        last = fmin(last, ceil(at) + 1.0);
+      }
+    }
+    const long long rowEnd = empty ? lo[0] - 1 : static_cast<long long>(last);
+    long long       base = 0;
+    for (int k = 1; k < D; ++k)
+    {
+      base += static_cast<long long>(idx[k]) * g.stride[k];
+    }
+    for (long long x = static_cast<long long>(first) + lane; x <= rowEnd; x += 32)
+    {
+      idx[0] = static_cast<int>(x);
+      Barycentric<D>(affine, g.spacing, idx, lambda);
+      bool inside = true;
+      for (int v = 0; v <= D; ++v)
+      {
+        inside = inside && lambda[v] >= -1e-9;
+      }
+      if (inside)
+      {
+        body(base + x, idx);
+      }
+    }
+  }
+}
+
+template <int D>
+__global__ void
+RasteriseKernel(DeviceGrid g, long long nElements, const double * affine, const long long * bounds, int * owner)
+{
+  for (long long e = blockIdx.x; e < nElements; e += gridDim.x)
+  {
+    const int mine = static_cast<int>(e);
+    ForEachPixelInElement<D>(g, affine + e * (D * D + D), bounds + e * 2 * D, [&](long long p, const int *) {
+      atomicMin(owner + p, mine);
+    });
+  }
+}
+
+__global__ void
+CoverageKernel(const int * owner, long long n, unsigned long long * firstUncovered)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    if (owner[p] == INT_MAX)
+    {
+      atomicMin(firstUncovered, static_cast<unsigned long long>(p));
+    }
+  }
+}
+
+/** Per element: sum over its pixels of phi_v(x) f_k(x) (deterministic: a fixed reduction tree per element). */
+template <int D>
+__global__ void
+GatherElementsKernel(DeviceGrid     g,
+                     long long      nElements,
+                     const double * affine,
+                     const long long * bounds,
+                     const int *    owner,
+                     const float *  force,
+                     double *       partial)
+{
+  constexpr int NV = (D + 1) * D;
+  __shared__ double shared[Threads / 32];
+  for (long long e = blockIdx.x; e < nElements; e += gridDim.x)
+  {
+    const double * a = affine + e * (D * D + D);
+    double         acc[NV] = {};
+    const int      mine = static_cast<int>(e);
+    ForEachPixelInElement<D>(g, a, bounds + e * 2 * D, [&](long long p, const int * idx) {
+      if (owner[p] != mine)
+      {
+        return;
+      }
+      float wt[D + 1];
+      Weights<D>(a, g.spacing, idx, wt);
+      for (int v = 0; v <= D; ++v)
+      {
+        const double w = wt[v];
+        for (int k = 0; k < D; ++k)
+        {
+          acc[v * D + k] += w * force[p * D + k];
+        }
+      }
+    });
+    for (int i = 0; i < NV; ++i)
+    {
+      const double s = BlockSum(acc[i], shared);
+      if (threadIdx.x == 0)
+      {
+        partial[e * NV + i] = s;
+      }
+    }
+  }
+}
+
+/** nodal[a] = scale x sum over the elements incident to node a (CSR, element order) of their partial sums. */
+template <int D>
+__global__ void
+GatherNodesKernel(long long nNodes, const int * start, const int * incidence, const double * partial, double scale, double * nodal)
+{
+  for (long long a = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; a < nNodes;
+       a += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double s[D] = {};
+    for (int i = start[a]; i < start[a + 1]; ++i)
+    {
+      const int slot = incidence[i]; // element * (D + 1) + vertex
+      for (int k = 0; k < D; ++k)
+      {
+        s[k] += partial[static_cast<long long>(slot) * D + k];
+      }
+    }
+    for (int k = 0; k < D; ++k)
+    {
+      nodal[a * D + k] = scale * s[k];
+    }
+  }
+}
+
+template <int D>
+__global__ void
+SampleNodesKernel(DeviceGrid g, long long nNodes, const double * nodes, const float * w, double * nodal)
+{
+  for (long long a = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; a < nNodes;
+       a += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double c[D], s[D] = {};
+    for (int k = 0; k < D; ++k)
+    {
+      c[k] = nodes[a * D + k] / g.spacing[k];
+    }
+    InterpolateAdd<D, D>(g.size, g.stride, w, c, 1.0, s);
+    for (int k = 0; k < D; ++k)
+    {
+      nodal[a * D + k] = s[k];
+    }
+  }
+}
+
+/** u(x) = scale x sum_v phi_v(x) u_v, and the largest |u_k| / spacing_k (BarycentricMap::Interpolate). */
+template <int D>
+__global__ void
+InterpolateKernel(DeviceGrid           g,
+                  const int *          owner,
+                  const double *       affine,
+                  const int *          elements,
+                  const double *       nodalU,
+                  double               scale,
+                  float *              out)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    const int e = owner[p];
+    int       idx[D];
+    IndexOf<D>(g, p, idx);
+    float wt[D + 1];
+    Weights<D>(affine + static_cast<long long>(e) * (D * D + D), g.spacing, idx, wt);
+    double u[D] = {};
+    for (int v = 0; v <= D; ++v)
+    {
+      const double w = wt[v];
+      const long long node = elements[static_cast<long long>(e) * (D + 1) + v];
+      for (int k = 0; k < D; ++k)
+      {
+        u[k] += w * nodalU[node * D + k];
+      }
+    }
+    for (int k = 0; k < D; ++k)
+    {
+      out[p * D + k] = static_cast<float>(scale * u[k]);
+    }
+  }
+}
+
+/** The two bounds of ExponentialField: largest |v_k| / spacing_k and largest neighbour difference |dv_r| / spacing_r
+ * (both in pixels). */
+template <int D>
+__global__ void
+NormsKernel(DeviceGrid g, const float * v, unsigned long long * maxima)
+{
+  double m0 = 0.0, m1 = 0.0;
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    int idx[D];
+    IndexOf<D>(g, p, idx);
+    for (int k = 0; k < D; ++k)
+    {
+      m0 = fmax(m0, fabs(static_cast<double>(v[p * D + k])) / g.spacing[k]);
+      if (idx[k] + 1 < g.size[k])
+      {
+        const long long q = p + g.stride[k];
+        for (int r = 0; r < D; ++r)
+        {
+          m1 = fmax(m1, fabs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / g.spacing[r]);
+        }
+      }
+    }
+  }
+  for (int o = 16; o > 0; o >>= 1)
+  {
+    m0 = fmax(m0, __shfl_down_sync(0xffffffffu, m0, o));
+    m1 = fmax(m1, __shfl_down_sync(0xffffffffu, m1, o));
+  }
+  if ((threadIdx.x & 31) == 0)
+  {
+    AtomicMaxNonNegative(maxima, m0);
+    AtomicMaxNonNegative(maxima + 1, m1);
+  }
+}
+
+__global__ void
+ScaleKernel(const float * in, float * out, long long n, float scale)
+{
+  for (long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; i < n;
+       i += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    out[i] = in[i] * scale;
+  }
+}
+
+/** out(x) = v(x) + w(x + v(x)) (ComposeFields); out may not alias w or v. */
+template <int D>
+__global__ void
+ComposeKernel(DeviceGrid g, const float * w, const float * v, float * out)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    int idx[D];
+    IndexOf<D>(g, p, idx);
+    double c[D], s[D] = {};
+    for (int k = 0; k < D; ++k)
+    {
+      c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / g.spacing[k];
+    }
+    InterpolateAdd<D, D>(g.size, g.stride, w, c, 1.0, s);
+    for (int k = 0; k < D; ++k)
+    {
+      out[p * D + k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
+    }
+  }
+}
+
+__global__ void
+FillKernel(int * data, long long n, int value)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    data[p] = value;
+  }
+}
+
+unsigned int
+GridBlocks(long long n)
+{
+  // grid-stride loops: enough blocks to fill the device several times over, never more than the work
+  const long long blocks = (n + Threads - 1) / Threads;
+  return static_cast<unsigned int>(std::max<long long>(1, std::min<long long>(blocks, 65535LL * 8)));
+}
+} // namespace
+
+struct RegistrationContext::Impl
+{
+  unsigned int dimension{ 0 };
+  DeviceGrid   grid{};
+  DeviceLevels levels{};
+  size_t       numberOfPixels{ 0 };
+  // pyramid storage (level 0 fixed is the fixed image on the registration grid)
+  std::vector<DeviceBuffer<float>> levelFixed, levelMoving, levelGradient;
+  DeviceBuffer<uint8_t>            mask;
+  bool                             hasMask{ false };
+  DeviceBuffer<float>              w, bufferA, bufferB, force, density;
+  DeviceBuffer<int>                owner;
+  DeviceBuffer<double>             sums;
+  DeviceBuffer<unsigned long long> scratch64;
+  // mesh
+  size_t                           numberOfNodes{ 0 }, numberOfElements{ 0 };
+  DeviceBuffer<double>             nodes, affine, partial, nodal;
+  DeviceBuffer<long long>          bounds;
+  DeviceBuffer<int>                elements, incidenceStart, incidence;
+  std::vector<int>                 hostStart, hostIncidence;
+  size_t                           allocated{ 0 };
+
+  template <typename T>
+  void
+  Track(const DeviceBuffer<T> & b)
+  {
+    allocated += b.Size() * sizeof(T);
+  }
+
+  size_t
+  Bytes() const
+  {
+    size_t s = 0;
+    for (const auto * v : { &levelFixed, &levelMoving, &levelGradient })
+    {
+      for (const auto & b : *v)
+      {
+        s += b.Size() * sizeof(float);
+      }
+    }
+    s += mask.Size() + (w.Size() + bufferA.Size() + bufferB.Size() + force.Size() + density.Size()) * sizeof(float);
+    s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + partial.Size() + nodal.Size()) * sizeof(double);
+    s += bounds.Size() * sizeof(long long) + (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
+    return s;
+  }
+};
+
+RegistrationContext::RegistrationContext()
+  : m_Impl(new Impl)
+{}
+
+RegistrationContext::~RegistrationContext() = default;
+
+Status
+RegistrationContext::Initialize(unsigned int                          dimension,
+                                const size_t *                        size,
+                                const double *                        spacing,
+                                const std::vector<PyramidLevelView> & levels,
+                                const uint8_t *                       mask)
+{
+  return Guard([&] {
+    if (dimension != 2 && dimension != 3)
+    {
+      throw CudaError("the GPU registration supports 2D and 3D images only");
+    }
+    if (levels.empty() || levels.size() > static_cast<size_t>(MaxLevels))
+    {
+      throw CudaError("the GPU registration needs 1 to 8 pyramid levels");
+    }
+    Impl & m = *m_Impl;
+    m.dimension = dimension;
+    long long s = 1;
+    for (int k = 0; k < 3; ++k)
+    {
+      const bool used = k < static_cast<int>(dimension);
+      m.grid.size[k] = used ? static_cast<int>(size[k]) : 1;
+      m.grid.spacing[k] = used ? spacing[k] : 1.0;
+      m.grid.stride[k] = s;
+      s *= m.grid.size[k];
+    }
+    m.grid.n = s;
+    m.numberOfPixels = static_cast<size_t>(s);
+    const size_t n = m.numberOfPixels;
+    const size_t D = dimension;
+    m.levelFixed.resize(levels.size());
+    m.levelMoving.resize(levels.size());
+    m.levelGradient.resize(levels.size());
+    m.levels = DeviceLevels{};
+    m.levels.count = static_cast<int>(levels.size());
+    for (size_t l = 0; l < levels.size(); ++l)
+    {
+      const PyramidLevelView & v = levels[l];
+      DeviceLevel &            L = m.levels.level[l];
+      size_t                   nf = 1, nm = 1;
+      long long                sf = 1, sm = 1;
+      for (int k = 0; k < 3; ++k)
+      {
+        const bool used = k < static_cast<int>(dimension);
+        L.fixedSize[k] = used ? static_cast<int>(v.fixedSize[k]) : 1;
+        L.movingSize[k] = used ? static_cast<int>(v.movingSize[k]) : 1;
+        L.fixedStride[k] = sf;
+        L.movingStride[k] = sm;
+        sf *= L.fixedSize[k];
+        sm *= L.movingSize[k];
+        nf *= L.fixedSize[k];
+        nm *= L.movingSize[k];
+        L.Fc[k] = v.Fc[k];
+        L.Mc[k] = v.Mc[k];
+        for (int j = 0; j < 3; ++j)
+        {
+          L.FA[k][j] = v.FA[k][j];
+          L.MA[k][j] = v.MA[k][j];
+          L.MG[k][j] = v.MG[k][j];
+        }
+      }
+      L.weight = v.weight;
+      if (l == 0 && nf != n)
+      {
+        throw CudaError("pyramid level 0 of the fixed image must be the registration grid");
+      }
+      m.levelFixed[l].Upload(v.fixed, nf);
+      m.levelMoving[l].Upload(v.moving, nm);
+      m.levelGradient[l].Upload(v.movingGradient, nm * D);
+      L.fixed = m.levelFixed[l].Data();
+      L.moving = m.levelMoving[l].Data();
+      L.gradient = m.levelGradient[l].Data();
+    }
+    m.hasMask = mask != nullptr;
+    if (m.hasMask)
+    {
+      m.mask.Upload(mask, n);
+    }
+    else
+    {
+      m.mask.Free();
+    }
+    m.w.Resize(n * D);
+    m.w.Zero();
+    m.bufferA.Resize(n * D);
+    m.bufferB.Resize(n * D);
+    m.force.Resize(n * D);
+    m.density.Resize(n);
+    m.owner.Resize(n);
+    m.sums.Resize(4);
+    m.scratch64.Resize(2);
+    Check(cudaDeviceSynchronize(), "Initialize");
+    m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+Status
+RegistrationContext::ComputeForce(ForceStatistics & statistics)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.sums.Zero();
+    const uint8_t * mask = m.hasMask ? m.mask.Data() : nullptr;
+    const unsigned  blocks = GridBlocks(m.grid.n);
+    if (m.dimension == 2)
+    {
+      ForceKernel<2><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), mask, m.force.Data(), m.density.Data(), m.sums.Data());
+    }
+    else
+    {
+      ForceKernel<3><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), mask, m.force.Data(), m.density.Data(), m.sums.Data());
+    }
+    CheckLaunch("ForceKernel");
+    double host[4];
+    m.sums.Download(host, 4);
+    statistics.mssd = host[0];
+    statistics.ssd = host[1];
+    statistics.sumSquaredForce = host[2];
+    statistics.inside = static_cast<size_t>(host[3] + 0.5);
+  });
+}
+
+Status
+RegistrationContext::AddToDensity(double alpha)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    AddKernel<<<GridBlocks(m.grid.n), Threads>>>(m.density.Data(), m.grid.n, alpha);
+    CheckLaunch("AddKernel");
+  });
+}
+
+const float *
+RegistrationContext::DeviceDensity() const
+{
+  return m_Impl->density.Data();
+}
+
+Status
+RegistrationContext::DownloadDensity(float * host) const
+{
+  return Guard([&] { m_Impl->density.Download(host, m_Impl->numberOfPixels); });
+}
+
+Status
+RegistrationContext::DownloadForce(float * host) const
+{
+  return Guard([&] { m_Impl->force.Download(host, m_Impl->numberOfPixels * m_Impl->dimension); });
+}
+
+Status
+RegistrationContext::SetMesh(const double *  nodes,
+                             size_t          numberOfNodes,
+                             const int32_t * elements,
+                             size_t          numberOfElements,
+                             const double *  affine,
+                             const int64_t * bounds)
+{
+  return Guard([&] {
+    Impl &       m = *m_Impl;
+    const size_t D = m.dimension;
+    if (numberOfElements == 0 || numberOfElements > static_cast<size_t>(INT_MAX) - 1)
+    {
+      throw CudaError("the mesh has no element or too many elements");
+    }
+    m.numberOfNodes = numberOfNodes;
+    m.numberOfElements = numberOfElements;
+    m.nodes.Upload(nodes, numberOfNodes * D);
+    m.elements.Upload(elements, numberOfElements * (D + 1));
+    m.affine.Upload(affine, numberOfElements * (D * D + D));
+    static_assert(sizeof(long long) == sizeof(int64_t), "64-bit bounds");
+    m.bounds.Upload(reinterpret_cast<const long long *>(bounds), numberOfElements * 2 * D);
+    m.partial.Reserve(numberOfElements * (D + 1) * D);
+    m.nodal.Reserve(numberOfNodes * D);
+    // node -> (element, vertex) incidence in element order, for a deterministic nodal sum
+    m.hostStart.assign(numberOfNodes + 1, 0);
+    for (size_t i = 0; i < numberOfElements * (D + 1); ++i)
+    {
+      const int a = elements[i];
+      if (a < 0 || static_cast<size_t>(a) >= numberOfNodes)
+      {
+        throw CudaError("a mesh element refers to a node that does not exist");
+      }
+      ++m.hostStart[a + 1];
+    }
+    for (size_t a = 0; a < numberOfNodes; ++a)
+    {
+      m.hostStart[a + 1] += m.hostStart[a];
+    }
+    m.hostIncidence.resize(numberOfElements * (D + 1));
+    std::vector<int> fill(m.hostStart.begin(), m.hostStart.end() - 1);
+    for (size_t i = 0; i < numberOfElements * (D + 1); ++i)
+    {
+      m.hostIncidence[fill[elements[i]]++] = static_cast<int>(i);
+    }
+    m.incidenceStart.Upload(m.hostStart.data(), m.hostStart.size());
+    m.incidence.Upload(m.hostIncidence.data(), m.hostIncidence.size());
+
+    FillKernel<<<GridBlocks(m.grid.n), Threads>>>(m.owner.Data(), m.grid.n, INT_MAX);
+    CheckLaunch("FillKernel");
+    const unsigned elementBlocks = static_cast<unsigned>(std::min<size_t>(numberOfElements, 65535u * 8));
+    if (D == 2)
+    {
+      RasteriseKernel<2><<<elementBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+    }
+    else
+    {
+      RasteriseKernel<3><<<elementBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+    }
+    CheckLaunch("RasteriseKernel");
+    const unsigned long long none = ~0ULL;
+    Check(cudaMemcpy(m.scratch64.Data(), &none, sizeof(none), cudaMemcpyHostToDevice), "coverage reset");
+    CoverageKernel<<<GridBlocks(m.grid.n), Threads>>>(m.owner.Data(), m.grid.n, m.scratch64.Data());
+    CheckLaunch("CoverageKernel");
+    unsigned long long first = 0;
+    m.scratch64.Download(&first, 1);
+    if (first != none)
+    {
+      throw CudaError("pixel " + std::to_string(first) +
+                      " is not covered by any element: the mesh does not cover the image domain");
+    }
+    m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+Status
+RegistrationContext::DownloadElementOfPixels(int32_t * host) const
+{
+  return Guard([&] { m_Impl->owner.Download(host, m_Impl->numberOfPixels); });
+}
+
+Status
+RegistrationContext::GatherForce(double scale, double * nodal)
+{
+  return Guard([&] {
+    Impl &          m = *m_Impl;
+    const long long ne = static_cast<long long>(m.numberOfElements);
+    const unsigned  elementBlocks = static_cast<unsigned>(std::min<long long>(ne, 65535LL * 8));
+    const unsigned  nodeBlocks = GridBlocks(static_cast<long long>(m.numberOfNodes));
+    if (m.dimension == 2)
+    {
+      GatherElementsKernel<2><<<elementBlocks, Threads>>>(m.grid, ne, m.affine.Data(), m.bounds.Data(), m.owner.Data(), m.force.Data(), m.partial.Data());
+      CheckLaunch("GatherElementsKernel");
+      GatherNodesKernel<2><<<nodeBlocks, Threads>>>(static_cast<long long>(m.numberOfNodes), m.incidenceStart.Data(), m.incidence.Data(), m.partial.Data(), scale, m.nodal.Data());
+    }
+    else
+    {
+      GatherElementsKernel<3><<<elementBlocks, Threads>>>(m.grid, ne, m.affine.Data(), m.bounds.Data(), m.owner.Data(), m.force.Data(), m.partial.Data());
+      CheckLaunch("GatherElementsKernel");
+      GatherNodesKernel<3><<<nodeBlocks, Threads>>>(static_cast<long long>(m.numberOfNodes), m.incidenceStart.Data(), m.incidence.Data(), m.partial.Data(), scale, m.nodal.Data());
+    }
+    CheckLaunch("GatherNodesKernel");
+    m.nodal.Download(nodal, m.numberOfNodes * m.dimension);
+  });
+}
+
+Status
+RegistrationContext::SampleFieldAtNodes(double * nodal)
+{
+  return Guard([&] {
+    Impl &         m = *m_Impl;
+    const unsigned blocks = GridBlocks(static_cast<long long>(m.numberOfNodes));
+    if (m.dimension == 2)
+    {
+      SampleNodesKernel<2><<<blocks, Threads>>>(m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
+    }
+    else
+    {
+      SampleNodesKernel<3><<<blocks, Threads>>>(m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
+    }
+    CheckLaunch("SampleNodesKernel");
+    m.nodal.Download(nodal, m.numberOfNodes * m.dimension);
+  });
+}
+
+Status
+RegistrationContext::ApplyUpdate(const double * nodalU, double scale, double & maxUpdatePixels, unsigned int & squarings)
+{
+  return Guard([&] {
+    Impl &          m = *m_Impl;
+    const long long n = m.grid.n;
+    const long long values = n * m.dimension;
+    const unsigned  blocks = GridBlocks(n);
+    m.nodal.Upload(nodalU, m.numberOfNodes * m.dimension);
+    m.scratch64.Zero();
+    float * a = m.bufferA.Data();
+    float * b = m.bufferB.Data();
+    if (m.dimension == 2)
+    {
+      InterpolateKernel<2><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+      CheckLaunch("InterpolateKernel");
+      NormsKernel<2><<<blocks, Threads>>>(m.grid, a, m.scratch64.Data());
+    }
+    else
+    {
+      InterpolateKernel<3><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+      CheckLaunch("InterpolateKernel");
+      NormsKernel<3><<<blocks, Threads>>>(m.grid, a, m.scratch64.Data());
+    }
+    CheckLaunch("NormsKernel");
+    unsigned long long bits[2];
+    m.scratch64.Download(bits, 2);
+    double maxima[2];
+    std::memcpy(maxima, bits, sizeof(maxima));
+    maxUpdatePixels = maxima[0];
+    const double maxNorm = std::max(maxima[0], maxima[1]);
+    squarings = 0;
+    while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
+    {
+      ++squarings;
+    }
+    const float factor = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
+    ScaleKernel<<<GridBlocks(values), Threads>>>(a, b, values, factor);
+    CheckLaunch("ScaleKernel");
+    for (unsigned int s = 0; s < squarings; ++s)
+    {
+      if (m.dimension == 2)
+      {
+        ComposeKernel<2><<<blocks, Threads>>>(m.grid, b, b, a);
+      }
+      else
+      {
+        ComposeKernel<3><<<blocks, Threads>>>(m.grid, b, b, a);
+      }
+      CheckLaunch("ComposeKernel (squaring)");
+      std::swap(a, b);
+    }
+    // b = exp(u); W <- W o exp(u): a = b + w(x + b)
+    if (m.dimension == 2)
+    {
+      ComposeKernel<2><<<blocks, Threads>>>(m.grid, m.w.Data(), b, a);
+    }
+    else
+    {
+      ComposeKernel<3><<<blocks, Threads>>>(m.grid, m.w.Data(), b, a);
+    }
+    CheckLaunch("ComposeKernel");
+    // a now holds the new w: swap the buffers' roles
+    if (a == m.bufferA.Data())
+    {
+      std::swap(m.w, m.bufferA);
+    }
+    else
+    {
+      std::swap(m.w, m.bufferB);
+    }
+  });
+}
+
+Status
+RegistrationContext::DownloadField(float * host) const
+{
+  return Guard([&] { m_Impl->w.Download(host, m_Impl->numberOfPixels * m_Impl->dimension); });
+}
+
+Status
+RegistrationContext::UploadField(const float * host)
+{
+  return Guard([&] {
+    m_Impl->w.Upload(host, m_Impl->numberOfPixels * m_Impl->dimension);
+    Check(cudaStreamSynchronize(nullptr), "UploadField");
+  });
+}
+
+size_t
+RegistrationContext::AllocatedBytes() const
+{
+  return m_Impl->allocated;
+}
+} // namespace cuda
+} // namespace dmr
+} // namespace itk

@@ -1,0 +1,142 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrRegistrationBackend_h
+#define dmrRegistrationBackend_h
+
+#include "dmrCudaBackend.h"
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+/** Plain C++ launcher API of the GPU registration iteration (STYLE.md section 4): no CUDA or ITK types. Kernels in
+ * Registration/cuda/dmrRegistrationBackend.cu, stub in Registration/src/dmrRegistrationCudaStub.cxx. */
+namespace itk
+{
+namespace dmr
+{
+namespace cuda
+{
+/** One pyramid level as the CPU path holds it (DensityFieldFilter::PyramidLevel), by host pointers; only the first
+ * `dimension` entries of every array are read. */
+struct PyramidLevelView
+{
+  size_t        fixedSize[3]{ 1, 1, 1 };
+  size_t        movingSize[3]{ 1, 1, 1 };
+  const float * fixed{ nullptr };          // level 0: the fixed image itself, on the registration grid
+  const float * moving{ nullptr };
+  const float * movingGradient{ nullptr }; // D interleaved, per mm, rotated into the fixed grid frame
+  double        FA[3][3]{};                // fixed-level continuous index = FA fineIndex + Fc
+  double        Fc[3]{};
+  double        MA[3][3]{};                // moving-level continuous index = MA fineIndex + Mc + MG w
+  double        Mc[3]{};
+  double        MG[3][3]{};                // per mm of the grid-frame displacement w
+  double        weight{ 1.0 };             // MSSD weight of the level (paper Eq. 3)
+};
+
+/** Sums of one force evaluation (paper Eq. 3 and 5), before the pixel volume factor. */
+struct ForceStatistics
+{
+  double mssd{ 0 };
+  double ssd{ 0 };
+  double sumSquaredForce{ 0 };
+  size_t inside{ 0 };
+};
+
+/** The device-resident state of one registration: pyramids, mask, the current field w (grid frame, mm), force,
+ * density, the update fields and the barycentric owner of every pixel. One instance per GenerateData(); all
+ * per-pixel data stay on the device between calls, only nodal vectors and scalars cross. */
+class DynamicMeshRegistration_EXPORT RegistrationContext
+{
+public:
+  RegistrationContext();
+  ~RegistrationContext();
+  RegistrationContext(const RegistrationContext &) = delete;
+  RegistrationContext &
+  operator=(const RegistrationContext &) = delete;
+
+  /** Uploads the pyramid and the mask (nullptr: every pixel), allocates the per-pixel fields and sets w = 0. */
+  Status
+  Initialize(unsigned int                          dimension,
+             const size_t *                        size,
+             const double *                        spacing,
+             const std::vector<PyramidLevelView> & levels,
+             const uint8_t *                       mask);
+
+  /** Force f of the fixed image vs the moving image warped by w, summed over the levels (grid frame), and
+   * |f|^2 into the density buffer (0 outside the mask). */
+  Status
+  ComputeForce(ForceStatistics & statistics);
+  /** density += alpha at every pixel (paper Eq. 9). */
+  Status
+  AddToDensity(double alpha);
+  /** Device pointer of the density (numberOfPixels floats), for the GPU CVT. */
+  const float *
+  DeviceDensity() const;
+  /** Host copy of the density (used where a CPU stage needs it, e.g. the initial contraction). */
+  Status
+  DownloadDensity(float * host) const;
+  /** Host copy of the grid-frame force (numberOfPixels x dimension floats). */
+  Status
+  DownloadForce(float * host) const;
+
+  /** Uploads a simplex mesh and rasterises it: every pixel gets the lowest-id element containing it (the CPU
+   * BarycentricMap rule, same per-pixel test). nodes: grid frame, mm; elements: dimension+1 node ids each;
+   * affine: per element the inverse edge matrix (D x D, row-major) then the first vertex (D), as
+   * BarycentricMap::ElementAffine computes them; bounds: per element the pixel bounding box lo[D], hi[D] (empty when
+   * lo[0] > hi[0]). Fails when a pixel is not covered. */
+  Status
+  SetMesh(const double *  nodes,
+          size_t          numberOfNodes,
+          const int32_t * elements,
+          size_t          numberOfElements,
+          const double *  affine,
+          const int64_t * bounds);
+  /** Host copy of the owning element of every pixel. */
+  Status
+  DownloadElementOfPixels(int32_t * host) const;
+  /** nodal[a * D + k] = scale x sum_x phi_a(x) f_k(x) (consistent load vector of the last force). */
+  Status
+  GatherForce(double scale, double * nodal);
+  /** nodal[a * D + k] = w_k at node a (multilinear, clamped). */
+  Status
+  SampleFieldAtNodes(double * nodal);
+  /** u(x) = scale x sum_a phi_a(x) nodalU_a; w <- w o exp(u) by scaling and squaring (the CPU rule for the number of
+   * squarings). Returns the largest |u_k| / spacing_k and the number of squarings. */
+  Status
+  ApplyUpdate(const double * nodalU, double scale, double & maxUpdatePixels, unsigned int & squarings);
+  /** Host copy of w (numberOfPixels x dimension floats, grid frame). */
+  Status
+  DownloadField(float * host) const;
+  /** Sets w from the host (grid frame). */
+  Status
+  UploadField(const float * host);
+
+  /** Largest device memory this context held at once (bytes), and the device's used memory peak seen (bytes). */
+  size_t
+  AllocatedBytes() const;
+
+private:
+  struct Impl;
+  std::unique_ptr<Impl> m_Impl;
+};
+} // namespace cuda
+} // namespace dmr
+} // namespace itk
+
+#endif

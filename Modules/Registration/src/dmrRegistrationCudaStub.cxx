@@ -1,0 +1,113 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "dmrRegistrationBackend.h"
+
+namespace itk
+{
+namespace dmr
+{
+namespace cuda
+{
+namespace
+{
+Status
+Unavailable()
+{
+  return Status::Error("the library was built without CUDA (DMR_USE_CUDA=OFF)");
+}
+} // namespace
+
+struct RegistrationContext::Impl
+{};
+
+RegistrationContext::RegistrationContext() = default;
+RegistrationContext::~RegistrationContext() = default;
+
+Status
+RegistrationContext::Initialize(unsigned int, const size_t *, const double *, const std::vector<PyramidLevelView> &, const uint8_t *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::ComputeForce(ForceStatistics &)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::AddToDensity(double)
+{
+  return Unavailable();
+}
+const float *
+RegistrationContext::DeviceDensity() const
+{
+  return nullptr;
+}
+Status
+RegistrationContext::DownloadDensity(float *) const
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::DownloadForce(float *) const
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::SetMesh(const double *, size_t, const int32_t *, size_t, const double *, const int64_t *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::DownloadElementOfPixels(int32_t *) const
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::GatherForce(double, double *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::SampleFieldAtNodes(double *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::ApplyUpdate(const double *, double, double &, unsigned int &)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::DownloadField(float *) const
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::UploadField(const float *)
+{
+  return Unavailable();
+}
+size_t
+RegistrationContext::AllocatedBytes() const
+{
+  return 0;
+}
+} // namespace cuda
+} // namespace dmr
+} // namespace itk

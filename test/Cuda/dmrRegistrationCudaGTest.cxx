@@ -1,0 +1,304 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// GPU registration iteration vs the CPU reference (issue 4): the force, the barycentric owner of every pixel, the
+// gathered nodal forces and the final displacement field of whole runs (2D and 3D, dynamic and regular meshes,
+// rotated geometry) must agree. Every test skips without a CUDA device.
+#include "itkFEMRegistrationMethod.h"
+#include "dmrFieldImage.h"
+#include "dmrRegistrationBackend.h"
+#include "gtest/gtest.h"
+#include <cmath>
+#include <iostream>
+
+namespace
+{
+template <unsigned int D>
+using ImageOf = itk::Image<float, D>;
+template <unsigned int D>
+using MethodOf = itk::FEMRegistrationMethod<ImageOf<D>, ImageOf<D>>;
+using MeshMode = itk::DynamicMeshRegistrationEnums::MeshMode;
+using Backend = itk::DynamicMeshRegistrationEnums::Backend;
+
+#define DMR_REQUIRE_DEVICE()                                                                                          \
+  if (!itk::dmr::cuda::DeviceAvailable())                                                                             \
+  GTEST_SKIP() << "no CUDA device: " << itk::dmr::cuda::UnavailableReason()
+
+/** Smooth ellipsoidal blob with a little texture; rotated direction, anisotropic spacing and an origin away from 0
+ * so the physical-space paths are exercised. */
+template <unsigned int D>
+typename ImageOf<D>::Pointer
+Blob(unsigned int n, const double * centre, const double * radii)
+{
+  using ImageType = ImageOf<D>;
+  auto                        image = ImageType::New();
+  typename ImageType::SizeType size;
+  typename ImageType::SpacingType spacing;
+  typename ImageType::PointType origin;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    size[k] = n - 4 * k;
+    spacing[k] = 1.0 + 0.25 * k;
+    origin[k] = -10.0 + 3.0 * k;
+  }
+  image->SetRegions(size);
+  image->SetSpacing(spacing);
+  image->SetOrigin(origin);
+  typename ImageType::DirectionType direction;
+  direction.SetIdentity();
+  const double a = 0.35;
+  direction(0, 0) = std::cos(a);
+  direction(0, 1) = -std::sin(a);
+  direction(1, 0) = std::sin(a);
+  direction(1, 1) = std::cos(a);
+  image->SetDirection(direction);
+  image->Allocate();
+  itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    double r2 = 0.0, texture = 0.0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const double q = (it.GetIndex()[k] - centre[k]) / radii[k];
+      r2 += q * q;
+      texture += std::sin(0.45 * it.GetIndex()[k] + k);
+    }
+    const double inside = 1.0 / (1.0 + std::exp((std::sqrt(r2) - 1.0) * 8.0));
+    it.Set(static_cast<float>(100.0 * inside * (1.0 + 0.1 * texture)));
+  }
+  return image;
+}
+
+template <unsigned int D>
+typename MethodOf<D>::Pointer
+Registration(Backend backend, MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n)
+{
+  const double cf[3] = { 0.45 * n, 0.5 * n, 0.45 * n }, rf[3] = { 0.3 * n, 0.22 * n, 0.25 * n };
+  const double cm[3] = { 0.52 * n, 0.47 * n, 0.5 * n }, rm[3] = { 0.24 * n, 0.25 * n, 0.2 * n };
+  auto         method = MethodOf<D>::New();
+  method->SetFixedImage(Blob<D>(n, cf, rf));
+  method->SetMovingImage(Blob<D>(n, cm, rm));
+  method->SetNumberOfNodes(nodes);
+  method->SetNumberOfIterations(iterations);
+  method->SetMeshMode(mode);
+  method->SetEnergyRatio(0.1);
+  method->SetMaximumNumberOfSweeps(50);
+  method->SetBackend(backend);
+  return method;
+}
+
+/** Largest difference of two displacement fields in voxels (per axis, divided by the spacing along the image axis
+ * closest to it: spacing is anisotropic, so use the smallest spacing: a conservative bound). */
+template <typename TField>
+double
+MaxDifferenceInVoxels(const TField * a, const TField * b)
+{
+  constexpr unsigned int D = TField::ImageDimension;
+  double                 h = a->GetSpacing()[0];
+  for (unsigned int k = 1; k < D; ++k)
+  {
+    h = std::min(h, static_cast<double>(a->GetSpacing()[k]));
+  }
+  const size_t n = a->GetLargestPossibleRegion().GetNumberOfPixels();
+  double       m = 0.0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      m = std::max(m, std::abs(static_cast<double>(a->GetBufferPointer()[p][k]) - b->GetBufferPointer()[p][k]) / h);
+    }
+  }
+  return m;
+}
+
+template <unsigned int D>
+void
+RunsAgree(MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n)
+{
+  auto cpu = Registration<D>(Backend::CPU, mode, nodes, iterations, n);
+  auto gpu = Registration<D>(Backend::CUDA, mode, nodes, iterations, n);
+  cpu->Update();
+  gpu->Update();
+  EXPECT_EQ(cpu->GetBackendUsed(), Backend::CPU);
+  ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
+  ASSERT_EQ(gpu->GetHistory().size(), cpu->GetHistory().size());
+  const double difference = MaxDifferenceInVoxels(cpu->GetDisplacementField(), gpu->GetDisplacementField());
+  double       maxDisplacement = 0.0;
+  const auto * f = cpu->GetDisplacementField()->GetBufferPointer();
+  for (size_t p = 0; p < cpu->GetDisplacementField()->GetLargestPossibleRegion().GetNumberOfPixels(); ++p)
+  {
+    maxDisplacement = std::max(maxDisplacement, static_cast<double>(f[p].GetNorm()));
+  }
+  std::cout << D << "D " << (mode == MeshMode::Dynamic ? "dynamic" : "regular") << ": max |u| " << maxDisplacement
+            << " mm, CPU/GPU max difference " << difference << " voxel, SSD " << cpu->GetHistory().front().ssd
+            << " -> CPU " << cpu->GetFinalSSD() << ", GPU " << gpu->GetFinalSSD() << std::endl;
+  EXPECT_GT(maxDisplacement, 1.0); // the pair really moves
+  EXPECT_LT(difference, 0.05);
+  EXPECT_NEAR(gpu->GetFinalSSD(), cpu->GetFinalSSD(), 1e-3 * cpu->GetFinalSSD());
+  EXPECT_LT(gpu->GetFinalSSD(), 0.5 * gpu->GetHistory().front().ssd);
+  for (size_t i = 0; i < cpu->GetHistory().size(); ++i)
+  {
+    EXPECT_EQ(gpu->GetHistory()[i].nodes, cpu->GetHistory()[i].nodes) << "iteration " << i + 1;
+    EXPECT_NEAR(gpu->GetHistory()[i].mssd, cpu->GetHistory()[i].mssd, 1e-6 * cpu->GetHistory()[i].mssd);
+  }
+  std::pair<double, double> range;
+  itk::dmr::JacobianDeterminantImage(gpu->GetDisplacementField(), range, nullptr);
+  EXPECT_GT(range.first, 0.0);
+  EXPECT_GT(gpu->GetDeviceBytes(), 0u);
+}
+
+/** The pieces one by one on a mesh from the CPU run: force (vs DensityFieldFilter), owner (vs BarycentricMap,
+ * identical), nodal forces (vs BarycentricMap::Gather on the same force). */
+template <unsigned int D>
+void
+StagesAgree(unsigned int nodes, unsigned int n)
+{
+  auto cpu = Registration<D>(Backend::CPU, MeshMode::Dynamic, nodes, 1, n);
+  cpu->Update();
+  const auto & mesh = cpu->GetCurrentSimplexMesh();
+  const auto * fixed = cpu->GetFixedImage();
+  const auto   grid = itk::dmr::Grid<D>::FromImage(fixed);
+
+  using DensityFilter = itk::DensityFieldFilter<ImageOf<D>, ImageOf<D>, itk::Image<itk::Vector<float, D>, D>, ImageOf<D>>;
+  auto density = DensityFilter::New();
+  density->SetFixedImage(fixed);
+  density->SetMovingImage(cpu->GetMovingImage());
+  density->ComputeForceFieldOff();
+  density->Update();
+  const auto & pyramid = density->GetPyramid();
+  std::vector<itk::dmr::cuda::PyramidLevelView> views(pyramid.size());
+  for (size_t l = 0; l < pyramid.size(); ++l)
+  {
+    auto & v = views[l];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      v.fixedSize[r] = pyramid[l].fixedGrid.size[r];
+      v.movingSize[r] = pyramid[l].movingGrid.size[r];
+      v.Fc[r] = pyramid[l].Fc[r];
+      v.Mc[r] = pyramid[l].Mc[r];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        v.FA[r][k] = pyramid[l].FA[r][k];
+        v.MA[r][k] = pyramid[l].MA[r][k];
+        v.MG[r][k] = 0.0; // w = 0 here
+      }
+    }
+    v.fixed = pyramid[l].fixed.data();
+    v.moving = pyramid[l].moving.data();
+    v.movingGradient = pyramid[l].movingGradient.data();
+    v.weight = static_cast<double>(pyramid[l].fixedGrid.numberOfPixels) / static_cast<double>(grid.numberOfPixels);
+  }
+  itk::dmr::cuda::RegistrationContext context;
+  ASSERT_TRUE(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, nullptr).Ok());
+  itk::dmr::cuda::ForceStatistics statistics;
+  ASSERT_TRUE(context.ComputeForce(statistics).Ok());
+  EXPECT_NEAR(statistics.mssd, density->GetMSSD(), 1e-9 * density->GetMSSD());
+  EXPECT_NEAR(statistics.ssd, density->GetSSD(), 1e-9 * density->GetSSD());
+  std::vector<float> force(grid.numberOfPixels * D);
+  ASSERT_TRUE(context.DownloadForce(force.data()).Ok());
+  const auto & cpuForce = density->GetGridForce();
+  double       maxForce = 0.0, maxDiff = 0.0;
+  for (size_t i = 0; i < force.size(); ++i)
+  {
+    maxForce = std::max(maxForce, std::abs(static_cast<double>(cpuForce[i])));
+    maxDiff = std::max(maxDiff, std::abs(static_cast<double>(cpuForce[i]) - force[i]));
+  }
+  EXPECT_GT(maxForce, 0.0);
+  EXPECT_LE(maxDiff, 1e-6 * maxForce);
+
+  // owner of every pixel: identical to the CPU rasterisation
+  constexpr size_t     affineSize = D * D + D;
+  std::vector<double>  affine(mesh.elements.size() * affineSize);
+  std::vector<int64_t> bounds(mesh.elements.size() * 2 * D);
+  std::vector<int32_t> elements;
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    itk::dmr::BarycentricMap<D>::ElementAffine(grid, mesh, e, &affine[e * affineSize], &bounds[e * 2 * D], &bounds[e * 2 * D + D]);
+    for (unsigned int v = 0; v <= D; ++v)
+    {
+      elements.push_back(static_cast<int32_t>(mesh.elements[e][v]));
+    }
+  }
+  ASSERT_TRUE(context.SetMesh(mesh.nodes.data(), mesh.NumberOfNodes(), elements.data(), mesh.elements.size(), affine.data(), bounds.data()).Ok());
+  itk::dmr::BarycentricMap<D> bary;
+  bary.Build(grid, mesh, nullptr);
+  std::vector<int32_t> owner(grid.numberOfPixels);
+  ASSERT_TRUE(context.DownloadElementOfPixels(owner.data()).Ok());
+  size_t differ = 0;
+  for (size_t p = 0; p < owner.size(); ++p)
+  {
+    differ += owner[p] != bary.GetElements()[p] ? 1 : 0;
+  }
+  EXPECT_EQ(differ, 0u) << "pixels whose owning element differs";
+
+  // nodal forces of the same (GPU) force
+  std::vector<double> gpuNodal(mesh.NumberOfNodes() * D), cpuNodal;
+  ASSERT_TRUE(context.GatherForce(grid.PixelVolume(), gpuNodal.data()).Ok());
+  bary.Gather(force.data(), grid.PixelVolume(), cpuNodal, nullptr);
+  double maxNodal = 0.0, maxNodalDiff = 0.0;
+  for (size_t i = 0; i < cpuNodal.size(); ++i)
+  {
+    maxNodal = std::max(maxNodal, std::abs(cpuNodal[i]));
+    maxNodalDiff = std::max(maxNodalDiff, std::abs(cpuNodal[i] - gpuNodal[i]));
+  }
+  EXPECT_GT(maxNodal, 0.0);
+  EXPECT_LE(maxNodalDiff, 1e-9 * maxNodal);
+
+  // a mesh that does not cover the image is refused with a message, not a crash
+  auto partial = mesh;
+  partial.elements.resize(partial.elements.size() / 2);
+  const auto status = context.SetMesh(partial.nodes.data(), partial.NumberOfNodes(), elements.data(), partial.elements.size(), affine.data(), bounds.data());
+  EXPECT_FALSE(status.Ok());
+  EXPECT_NE(status.message.find("not covered"), std::string::npos) << status.message;
+}
+} // namespace
+
+TEST(CudaRegistration, StagesAgreeWithCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  StagesAgree<2>(40, 96);
+}
+
+TEST(CudaRegistration, StagesAgreeWithCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  StagesAgree<3>(150, 40);
+}
+
+TEST(CudaRegistration, DynamicMeshRunMatchesCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<2>(MeshMode::Dynamic, 40, 60, 96);
+}
+
+TEST(CudaRegistration, RegularMeshRunMatchesCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<2>(MeshMode::Regular, 49, 60, 96);
+}
+
+TEST(CudaRegistration, DynamicMeshRunMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<3>(MeshMode::Dynamic, 150, 30, 40);
+}
+
+TEST(CudaRegistration, RegularMeshRunMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<3>(MeshMode::Regular, 125, 30, 40);
+}
