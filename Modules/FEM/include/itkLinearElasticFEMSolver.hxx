@@ -122,19 +122,17 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
       }
     }
   }
-  SparseMatrixType Kf(nFree, nFree);
-  Kf.setFromTriplets(reduced.begin(), reduced.end());
-  m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
+  m_Kf.resize(nFree, nFree);
+  m_Kf.setFromTriplets(reduced.begin(), reduced.end());
+  m_Factor.reset();
+  m_CG.reset(new ConjugateGradientType());
   if (nFree > 0)
   {
-    m_Factor->compute(Kf);
-    if (m_Factor->info() != Eigen::Success)
-    {
-      itkExceptionMacro("the stiffness matrix could not be factorised (mesh with " << mesh.NumberOfNodes()
-                                                                                   << " nodes, " << nFree
-                                                                                   << " free degrees of freedom)");
-    }
+    m_CG->setTolerance(m_Tolerance);
+    m_CG->setMaxIterations(std::max<Eigen::Index>(1000, 4 * nFree));
+    m_CG->compute(m_Kf);
   }
+  m_LastIterations = 0;
   m_Mesh = &mesh;
   m_AssembledLambda = m_Lambda;
   m_AssembledMu = m_Mu;
@@ -167,7 +165,34 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
   {
     return;
   }
-  const Eigen::VectorXd x = m_Factor->solve(rhs);
+  // conjugate gradients (diagonal preconditioner), warm-started from the previous solution when the system has the
+  // same size (the dynamic mesh keeps one node per CVT cell, so node a of the next mesh is near node a of this one)
+  Eigen::VectorXd x;
+  if (m_Warm.size() == rhs.size())
+  {
+    x = m_CG->solveWithGuess(rhs, m_Warm);
+  }
+  else
+  {
+    x = m_CG->solve(rhs);
+  }
+  m_LastIterations = static_cast<SizeValueType>(m_CG->iterations());
+  if (m_CG->info() != Eigen::Success)
+  {
+    // not converged (a very ill-conditioned mesh): the exact sparse factorisation
+    if (!m_Factor)
+    {
+      m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
+      m_Factor->compute(m_Kf);
+      if (m_Factor->info() != Eigen::Success)
+      {
+        itkExceptionMacro("the stiffness matrix could not be factorised (mesh with "
+                          << m_Mesh->NumberOfNodes() << " nodes, " << m_Kf.rows() << " free degrees of freedom)");
+      }
+    }
+    x = m_Factor->solve(rhs);
+  }
+  m_Warm = x;
   for (size_t i = 0; i < nDof; ++i)
   {
     if (m_FreeIndex[i] >= 0)
@@ -194,6 +219,8 @@ LinearElasticFEMSolver<D>::PrintSelf(std::ostream & os, Indent indent) const
   os << indent << "Mu: " << m_Mu << std::endl;
   os << indent << "NumberOfFreeNodes: " << m_NumberOfFreeNodes << std::endl;
   os << indent << "NumberOfDegreesOfFreedom: " << m_K.rows() << std::endl;
+  os << indent << "Tolerance: " << m_Tolerance << std::endl;
+  os << indent << "LastIterations: " << m_LastIterations << std::endl;
 }
 } // namespace itk
 
