@@ -138,17 +138,6 @@ protected:
   GenerateData() override;
 
 private:
-  void
-  GenerateData2D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
-  void
-  GenerateData3D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
-  /** Compacts the used nodes, orients the elements, marks the border nodes, checks that the elements tile the box
-   * and grafts the physical-space mesh onto the output. */
-  void
-  BuildOutputMesh(const dmr::Grid<ImageDimension> &                            grid,
-                  const std::vector<double> &                                  nodes,
-                  const std::vector<std::array<int32_t, ImageDimension + 1>> & elements);
-
   SimplexMeshType m_SimplexMesh;
   bool            m_SnapToBoxEdges{ true };
   SizeValueType   m_NumberOfSkippedConstraints{ 0 };
