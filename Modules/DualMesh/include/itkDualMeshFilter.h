@@ -58,6 +58,12 @@ namespace itk
  * Because every corner and boundary node lies on the image box, the mesh covers the box spanned by the pixel centres
  * exactly, with no inverted or zero-measure element (checked: element measures sum to the box measure).
  *
+ * The work is split in two (dmrDualMeshBuilder.h): the label image is reduced to a dmr::LabelSummary (cell voxel
+ * counts and index sums, border face/edge statistics, corner labels, adjacent cell pairs) by dmr::SummarizeLabels,
+ * and the mesh is built from the summary and the sites by dmr::BuildDualMesh. The GPU registration computes the
+ * same summary on the device (dmr::cuda::LabelSummarizer, dmrDualMeshBackend.h) and calls the builder directly, so
+ * the labels never leave the device.
+ *
  * Output: an itk::Mesh in physical space with TriangleCells (2D) or TetrahedronCells (3D); point data 1 marks nodes
  * on the image border, which the FEM stage fixes.
  *
