@@ -31,7 +31,7 @@ using itk::dmr::Grid;
 using itk::dmr::LabelSummary;
 using itk::dmr::test::SameSummary;
 
-template <unsigned int D>
+template<unsigned int D>
 Grid<D>
 MakeGrid(std::array<size_t, D> size)
 {
@@ -41,19 +41,18 @@ MakeGrid(std::array<size_t, D> size)
 }
 
 /** GPU summary (through the given summarizer, or the shared one) of host labels against the CPU summary. */
-template <unsigned int D>
+template<unsigned int D>
 ::testing::AssertionResult
-GpuSummaryIsTheCpuSummary(const Grid<D> &                       grid,
-                          const std::vector<int32_t> &          labels,
-                          size_t                                nCells,
-                          itk::dmr::cuda::LabelSummarizer *     summarizer = nullptr)
+GpuSummaryIsTheCpuSummary(const Grid<D> &                   grid,
+                          const std::vector<int32_t> &      labels,
+                          size_t                            nCells,
+                          itk::dmr::cuda::LabelSummarizer * summarizer = nullptr)
 {
-  auto threader = itk::MultiThreaderBase::New();
+  auto               threader = itk::MultiThreaderBase::New();
   const LabelSummary cpu = itk::dmr::SummarizeLabels<D>(grid, labels.data(), nCells, threader);
   LabelSummary       gpu;
-  const auto         status = summarizer
-                                ? summarizer->SummarizeHostLabels(D, grid.size.data(), labels.data(), nCells, gpu)
-                                : itk::dmr::cuda::SummarizeHostLabels(D, grid.size.data(), labels.data(), nCells, gpu);
+  const auto status = summarizer ? summarizer->SummarizeHostLabels(D, grid.size.data(), labels.data(), nCells, gpu)
+                                 : itk::dmr::cuda::SummarizeHostLabels(D, grid.size.data(), labels.data(), nCells, gpu);
   if (!status.Ok())
   {
     return ::testing::AssertionFailure() << "GPU summary failed: " << status.message;
@@ -61,7 +60,7 @@ GpuSummaryIsTheCpuSummary(const Grid<D> &                       grid,
   return SameSummary(gpu, cpu);
 }
 
-template <typename TPhantom>
+template<typename TPhantom>
 std::vector<int32_t>
 PhantomLabels(const TPhantom & phantom)
 {
@@ -94,8 +93,7 @@ TEST(DualMeshCuda, SummaryOfRandomLabelsMatchesCpu)
   EXPECT_TRUE(GpuSummaryIsTheCpuSummary<2>(grid2, itk::dmr::test::RandomLabels(grid2.numberOfPixels, 5000, 1), 5000));
   EXPECT_TRUE(GpuSummaryIsTheCpuSummary<2>(grid2, itk::dmr::test::RandomLabels(grid2.numberOfPixels, 7, 2), 7));
   const auto grid3 = MakeGrid<3>({ { 64, 48, 40 } });
-  EXPECT_TRUE(
-    GpuSummaryIsTheCpuSummary<3>(grid3, itk::dmr::test::RandomLabels(grid3.numberOfPixels, 20000, 3), 20000));
+  EXPECT_TRUE(GpuSummaryIsTheCpuSummary<3>(grid3, itk::dmr::test::RandomLabels(grid3.numberOfPixels, 20000, 3), 20000));
   EXPECT_TRUE(GpuSummaryIsTheCpuSummary<3>(grid3, itk::dmr::test::RandomLabels(grid3.numberOfPixels, 3, 4), 3));
 }
 
@@ -107,26 +105,32 @@ TEST(DualMeshCuda, SummaryOfVoronoiLabelsMatchesCpu)
   EXPECT_TRUE(
     GpuSummaryIsTheCpuSummary<2>(grid2, itk::dmr::test::LatticeVoronoiLabels<2>(grid2, { { 21, 17 } }, 5), 21 * 17));
   const auto grid3 = MakeGrid<3>({ { 97, 61, 45 } });
-  EXPECT_TRUE(GpuSummaryIsTheCpuSummary<3>(
-    grid3, itk::dmr::test::LatticeVoronoiLabels<3>(grid3, { { 9, 7, 5 } }, 6), 9 * 7 * 5));
+  EXPECT_TRUE(
+    GpuSummaryIsTheCpuSummary<3>(grid3, itk::dmr::test::LatticeVoronoiLabels<3>(grid3, { { 9, 7, 5 } }, 6), 9 * 7 * 5));
 }
 
 TEST(DualMeshCuda, SummaryOfThinAndOddSizesMatchesCpu)
 {
   if (!itk::dmr::cuda::DeviceAvailable())
     GTEST_SKIP() << "no CUDA device";
-  for (const auto & size : { std::array<size_t, 2>{ { 1, 1 } }, std::array<size_t, 2>{ { 5, 1 } },
-                             std::array<size_t, 2>{ { 1, 7 } }, std::array<size_t, 2>{ { 2, 2 } },
-                             std::array<size_t, 2>{ { 1001, 3 } }, std::array<size_t, 2>{ { 3, 1001 } } })
+  for (const auto & size : { std::array<size_t, 2>{ { 1, 1 } },
+                             std::array<size_t, 2>{ { 5, 1 } },
+                             std::array<size_t, 2>{ { 1, 7 } },
+                             std::array<size_t, 2>{ { 2, 2 } },
+                             std::array<size_t, 2>{ { 1001, 3 } },
+                             std::array<size_t, 2>{ { 3, 1001 } } })
   {
     const auto grid = MakeGrid<2>(size);
     const auto n = std::min<size_t>(5, grid.numberOfPixels);
     EXPECT_TRUE(GpuSummaryIsTheCpuSummary<2>(grid, itk::dmr::test::RandomLabels(grid.numberOfPixels, n, 8), n))
       << size[0] << "x" << size[1];
   }
-  for (const auto & size : { std::array<size_t, 3>{ { 1, 1, 1 } }, std::array<size_t, 3>{ { 2, 2, 2 } },
-                             std::array<size_t, 3>{ { 3, 1, 5 } }, std::array<size_t, 3>{ { 17, 3, 1 } },
-                             std::array<size_t, 3>{ { 1, 9, 13 } }, std::array<size_t, 3>{ { 33, 2, 19 } } })
+  for (const auto & size : { std::array<size_t, 3>{ { 1, 1, 1 } },
+                             std::array<size_t, 3>{ { 2, 2, 2 } },
+                             std::array<size_t, 3>{ { 3, 1, 5 } },
+                             std::array<size_t, 3>{ { 17, 3, 1 } },
+                             std::array<size_t, 3>{ { 1, 9, 13 } },
+                             std::array<size_t, 3>{ { 33, 2, 19 } } })
   {
     const auto grid = MakeGrid<3>(size);
     const auto n = std::min<size_t>(6, grid.numberOfPixels);
@@ -143,8 +147,8 @@ TEST(DualMeshCuda, OneSummarizerServesChangingInputsFromDeviceLabels)
   itk::dmr::cuda::LabelSummarizer summarizer;
   const auto                      big = MakeGrid<3>({ { 80, 70, 30 } });
   const auto                      small = MakeGrid<2>({ { 40, 30 } });
-  const auto bigLabels = itk::dmr::test::LatticeVoronoiLabels<3>(big, { { 8, 7, 3 } }, 10);
-  const auto smallLabels = itk::dmr::test::LatticeVoronoiLabels<2>(small, { { 4, 3 } }, 11);
+  const auto                      bigLabels = itk::dmr::test::LatticeVoronoiLabels<3>(big, { { 8, 7, 3 } }, 10);
+  const auto                      smallLabels = itk::dmr::test::LatticeVoronoiLabels<2>(small, { { 4, 3 } }, 11);
   for (int round = 0; round < 2; ++round)
   {
     EXPECT_TRUE(GpuSummaryIsTheCpuSummary<3>(big, bigLabels, 168, &summarizer));
@@ -207,8 +211,8 @@ TEST(DualMeshCuda, SummaryTiming256x256x132With3150Cells)
   // the registration's size: the summary replaces downloading 256 x 256 x 132 labels (35 MB) every iteration
   if (!itk::dmr::cuda::DeviceAvailable())
     GTEST_SKIP() << "no CUDA device";
-  Grid<3>    grid(std::array<size_t, 3>{ { 256, 256, 132 } }, std::array<double, 3>{ { 1.0, 1.0, 2.0 } });
-  const auto labels = itk::dmr::test::LatticeVoronoiLabels<3>(grid, { { 15, 15, 14 } }, 2024);
+  Grid<3>      grid(std::array<size_t, 3>{ { 256, 256, 132 } }, std::array<double, 3>{ { 1.0, 1.0, 2.0 } });
+  const auto   labels = itk::dmr::test::LatticeVoronoiLabels<3>(grid, { { 15, 15, 14 } }, 2024);
   const size_t nCells = 15 * 15 * 14;
 
   itk::dmr::cuda::LabelSummarizer summarizer;
@@ -228,15 +232,15 @@ TEST(DualMeshCuda, SummaryTiming256x256x132With3150Cells)
     total += us;
     best = std::min(best, us);
   }
-  auto       threader = itk::MultiThreaderBase::New();
-  const auto cpuStart = std::chrono::steady_clock::now();
-  const auto cpu = itk::dmr::SummarizeLabels<3>(grid, labels.data(), nCells, threader);
+  auto         threader = itk::MultiThreaderBase::New();
+  const auto   cpuStart = std::chrono::steady_clock::now();
+  const auto   cpu = itk::dmr::SummarizeLabels<3>(grid, labels.data(), nCells, threader);
   const double cpuMs = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - cpuStart).count();
   EXPECT_TRUE(SameSummary(gpu, cpu));
   std::cout << "[ TIMING   ] GPU label summary 256x256x132, " << nCells << " cells, " << gpu.adjacentPairs.size()
-            << " adjacent pairs on " << itk::dmr::cuda::DeviceDescription() << ": mean " << total / runs
-            << " us, min " << best << " us over " << runs << " calls (device labels, summary downloaded); CPU "
-            << cpuMs << " ms with " << threader->GetNumberOfWorkUnits() << " work units" << std::endl;
+            << " adjacent pairs on " << itk::dmr::cuda::DeviceDescription() << ": mean " << total / runs << " us, min "
+            << best << " us over " << runs << " calls (device labels, summary downloaded); CPU " << cpuMs << " ms with "
+            << threader->GetNumberOfWorkUnits() << " work units" << std::endl;
   RecordProperty("gpu_mean_us", std::to_string(total / runs));
 }
 } // namespace

@@ -36,7 +36,7 @@ Threader(unsigned int workUnits)
 }
 
 /** CPU summary against the brute-force definition, serial, with one work unit and with several. */
-template <unsigned int D>
+template<unsigned int D>
 ::testing::AssertionResult
 SummaryIsTheDefinition(const Grid<D> & grid, const std::vector<int32_t> & labels, size_t nCells)
 {
@@ -54,7 +54,7 @@ SummaryIsTheDefinition(const Grid<D> & grid, const std::vector<int32_t> & labels
   return ::testing::AssertionSuccess();
 }
 
-template <unsigned int D>
+template<unsigned int D>
 Grid<D>
 MakeGrid(std::array<size_t, D> size)
 {
@@ -78,26 +78,29 @@ TEST(LabelSummary, MatchesTheDefinitionOnRandomLabels)
 TEST(LabelSummary, MatchesTheDefinitionOnVoronoiLabels)
 {
   const auto grid2 = MakeGrid<2>({ { 70, 45 } });
-  EXPECT_TRUE(SummaryIsTheDefinition<2>(
-    grid2, itk::dmr::test::LatticeVoronoiLabels<2>(grid2, { { 7, 5 } }, 11), 35));
+  EXPECT_TRUE(SummaryIsTheDefinition<2>(grid2, itk::dmr::test::LatticeVoronoiLabels<2>(grid2, { { 7, 5 } }, 11), 35));
   const auto grid3 = MakeGrid<3>({ { 31, 24, 17 } });
-  EXPECT_TRUE(SummaryIsTheDefinition<3>(
-    grid3, itk::dmr::test::LatticeVoronoiLabels<3>(grid3, { { 5, 4, 3 } }, 12), 60));
+  EXPECT_TRUE(
+    SummaryIsTheDefinition<3>(grid3, itk::dmr::test::LatticeVoronoiLabels<3>(grid3, { { 5, 4, 3 } }, 12), 60));
 }
 
 TEST(LabelSummary, MatchesTheDefinitionOnThinImages)
 {
   // one pixel along an axis: both faces of that axis are the same pixels; 3D faces and edges may be empty
-  for (const auto & size : { std::array<size_t, 2>{ { 5, 1 } }, std::array<size_t, 2>{ { 1, 4 } },
-                             std::array<size_t, 2>{ { 1, 1 } }, std::array<size_t, 2>{ { 2, 2 } } })
+  for (const auto & size : { std::array<size_t, 2>{ { 5, 1 } },
+                             std::array<size_t, 2>{ { 1, 4 } },
+                             std::array<size_t, 2>{ { 1, 1 } },
+                             std::array<size_t, 2>{ { 2, 2 } } })
   {
     const auto grid = MakeGrid<2>(size);
     const auto n = std::min<size_t>(3, grid.numberOfPixels);
     EXPECT_TRUE(SummaryIsTheDefinition<2>(grid, itk::dmr::test::RandomLabels(grid.numberOfPixels, n, 6), n))
       << size[0] << "x" << size[1];
   }
-  for (const auto & size : { std::array<size_t, 3>{ { 4, 4, 1 } }, std::array<size_t, 3>{ { 1, 1, 1 } },
-                             std::array<size_t, 3>{ { 2, 2, 2 } }, std::array<size_t, 3>{ { 3, 1, 5 } },
+  for (const auto & size : { std::array<size_t, 3>{ { 4, 4, 1 } },
+                             std::array<size_t, 3>{ { 1, 1, 1 } },
+                             std::array<size_t, 3>{ { 2, 2, 2 } },
+                             std::array<size_t, 3>{ { 3, 1, 5 } },
                              std::array<size_t, 3>{ { 2, 3, 4 } } })
   {
     const auto grid = MakeGrid<3>(size);
@@ -120,7 +123,7 @@ TEST(LabelSummary, LabelOutsideTheCellRangeThrows)
 }
 
 /** The sites of a phantom's CVT in the grid frame, as the filter converts them. */
-template <typename TPhantom>
+template<typename TPhantom>
 std::vector<double>
 SitesInTheGridFrame(const TPhantom & phantom)
 {
@@ -142,7 +145,7 @@ SitesInTheGridFrame(const TPhantom & phantom)
 }
 
 /** The summary-based builder gives exactly the filter's mesh and statistics. */
-template <typename TPhantom>
+template<typename TPhantom>
 void
 ExpectBuilderGivesTheFilterMesh(const TPhantom & phantom, bool withSites, bool snapToBoxEdges)
 {
@@ -156,13 +159,14 @@ ExpectBuilderGivesTheFilterMesh(const TPhantom & phantom, bool withSites, bool s
   filter->SetSnapToBoxEdges(snapToBoxEdges);
   filter->Update();
 
-  const auto   grid = phantom.GetGrid();
-  const auto * labels = phantom.cvt->GetOutput()->GetBufferPointer();
-  const size_t nCells = phantom.cvt->GetSites()->GetNumberOfPoints();
-  const auto   summary = itk::dmr::SummarizeLabels<D>(grid, labels, nCells, nullptr);
-  const auto   sites = SitesInTheGridFrame(phantom);
+  const auto                   grid = phantom.GetGrid();
+  const auto *                 labels = phantom.cvt->GetOutput()->GetBufferPointer();
+  const size_t                 nCells = phantom.cvt->GetSites()->GetNumberOfPoints();
+  const auto                   summary = itk::dmr::SummarizeLabels<D>(grid, labels, nCells, nullptr);
+  const auto                   sites = SitesInTheGridFrame(phantom);
   itk::dmr::DualMeshStatistics statistics;
-  const auto mesh = itk::dmr::BuildDualMesh<D>(grid, summary, withSites ? sites.data() : nullptr, snapToBoxEdges, &statistics);
+  const auto                   mesh =
+    itk::dmr::BuildDualMesh<D>(grid, summary, withSites ? sites.data() : nullptr, snapToBoxEdges, &statistics);
   const auto & expected = filter->GetSimplexMesh();
   EXPECT_EQ(mesh.nodes, expected.nodes);
   EXPECT_EQ(mesh.elements, expected.elements);
@@ -181,7 +185,7 @@ TEST(DualMeshBuilder, GivesTheFilterMesh2D)
   ExpectBuilderGivesTheFilterMesh(phantom, true, true);
   ExpectBuilderGivesTheFilterMesh(phantom, false, true);
   // the summary of the filter's labels is the brute-force one
-  const auto grid = phantom.GetGrid();
+  const auto   grid = phantom.GetGrid();
   const auto * L = phantom.cvt->GetOutput()->GetBufferPointer();
   EXPECT_TRUE(SummaryIsTheDefinition<2>(grid, std::vector<int32_t>(L, L + grid.numberOfPixels), 40));
 }
@@ -191,7 +195,7 @@ TEST(DualMeshBuilder, GivesTheFilterMesh3D)
   const auto phantom = itk::dmr::test::MakeDualMeshPhantom3D(120);
   ExpectBuilderGivesTheFilterMesh(phantom, true, true);
   ExpectBuilderGivesTheFilterMesh(phantom, false, false);
-  const auto grid = phantom.GetGrid();
+  const auto   grid = phantom.GetGrid();
   const auto * L = phantom.cvt->GetOutput()->GetBufferPointer();
   EXPECT_TRUE(SummaryIsTheDefinition<3>(grid, std::vector<int32_t>(L, L + grid.numberOfPixels), 120));
 }

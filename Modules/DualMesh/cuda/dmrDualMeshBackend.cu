@@ -59,7 +59,7 @@ constexpr int      kPairSlots = 1 << kPairSlotBits;
 constexpr int      kProbes = 16;
 constexpr int32_t  kNoCell = -1;
 constexpr ull      kNoPair = ~0ull;
-constexpr unsigned kCounterPairs = 0; // keys appended to the key list (may exceed its capacity: then retried)
+constexpr unsigned kCounterPairs = 0;   // keys appended to the key list (may exceed its capacity: then retried)
 constexpr unsigned kCounterInvalid = 1; // voxels with a label outside [0, numberOfCells)
 constexpr unsigned kNumberOfCounters = 2;
 
@@ -408,7 +408,8 @@ class PinnedBuffer
 public:
   PinnedBuffer() = default;
   PinnedBuffer(const PinnedBuffer &) = delete;
-  PinnedBuffer & operator=(const PinnedBuffer &) = delete;
+  PinnedBuffer &
+  operator=(const PinnedBuffer &) = delete;
   ~PinnedBuffer()
   {
     if (m_Data)
@@ -514,7 +515,8 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
   border.faceStats = stats.Data() + cellValues;
   border.edgeStats = stats.Data() + cellValues + faceValues;
   long long maxBorderItems = 0;
-  auto      addPart = [&](BorderPart b) {
+  auto      addPart = [&](BorderPart b)
+  {
     if (b.countA <= 0 || b.countB <= 0)
     {
       return;
@@ -609,8 +611,8 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
     Check(cudaStreamSynchronize(nullptr), "label summary kernels");
     if (hostStatsData[counterAt + kCounterInvalid] != 0)
     {
-      throw CudaError(std::to_string(hostStatsData[counterAt + kCounterInvalid]) +
-                      " voxels have a label outside [0, " + std::to_string(numberOfCells) + ")");
+      throw CudaError(std::to_string(hostStatsData[counterAt + kCounterInvalid]) + " voxels have a label outside [0, " +
+                      std::to_string(numberOfCells) + ")");
     }
     const ull emitted = hostStatsData[counterAt + kCounterPairs];
     if (emitted <= keys.Size())
@@ -660,31 +662,20 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
   sortedKeys.Reserve(emitted);
   numberSelected.Reserve(1);
   size_t sortBytes = 0, uniqueBytes = 0;
-  Check(cub::DeviceRadixSort::SortKeys(
-          nullptr, sortBytes, keys.Data(), sortedKeys.Data(), numItems, 0, endBit, nullptr),
-        "DeviceRadixSort (size query)");
+  Check(
+    cub::DeviceRadixSort::SortKeys(nullptr, sortBytes, keys.Data(), sortedKeys.Data(), numItems, 0, endBit, nullptr),
+    "DeviceRadixSort (size query)");
   Check(cub::DeviceSelect::Unique(
           nullptr, uniqueBytes, sortedKeys.Data(), keys.Data(), numberSelected.Data(), numItems, nullptr),
         "DeviceSelect::Unique (size query)");
   cubTemp.Reserve(std::max<size_t>(std::max(sortBytes, uniqueBytes), 1));
   sortBytes = cubTemp.Size();
-  Check(cub::DeviceRadixSort::SortKeys(cubTemp.Data(),
-                                       sortBytes,
-                                       keys.Data(),
-                                       sortedKeys.Data(),
-                                       numItems,
-                                       0,
-                                       endBit,
-                                       nullptr),
+  Check(cub::DeviceRadixSort::SortKeys(
+          cubTemp.Data(), sortBytes, keys.Data(), sortedKeys.Data(), numItems, 0, endBit, nullptr),
         "DeviceRadixSort");
   uniqueBytes = cubTemp.Size();
-  Check(cub::DeviceSelect::Unique(cubTemp.Data(),
-                                  uniqueBytes,
-                                  sortedKeys.Data(),
-                                  keys.Data(),
-                                  numberSelected.Data(),
-                                  numItems,
-                                  nullptr),
+  Check(cub::DeviceSelect::Unique(
+          cubTemp.Data(), uniqueBytes, sortedKeys.Data(), keys.Data(), numberSelected.Data(), numItems, nullptr),
         "DeviceSelect::Unique");
   ull unique = 0;
   numberSelected.Download(&unique, 1);
@@ -705,7 +696,8 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
 
 LabelSummarizer::LabelSummarizer()
   : m_Impl(new Impl)
-{}
+{
+}
 
 LabelSummarizer::~LabelSummarizer()
 {
@@ -756,11 +748,13 @@ LabelSummarizer::UploadLabels(const int32_t * hostLabels, size_t numberOfPixels)
   {
     return Status::Error("label upload: no labels");
   }
-  return Guard([&] {
-    m_Impl->uploaded.Reserve(std::max<size_t>(numberOfPixels, 1));
-    m_Impl->uploaded.Upload(hostLabels, numberOfPixels);
-    Check(cudaStreamSynchronize(nullptr), "label upload");
-  });
+  return Guard(
+    [&]
+    {
+      m_Impl->uploaded.Reserve(std::max<size_t>(numberOfPixels, 1));
+      m_Impl->uploaded.Upload(hostLabels, numberOfPixels);
+      Check(cudaStreamSynchronize(nullptr), "label upload");
+    });
 }
 
 const int32_t *

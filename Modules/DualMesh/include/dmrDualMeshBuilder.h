@@ -42,7 +42,7 @@ namespace dmr
 /** Summary of a label image with labels 0..numberOfCells-1 (see LabelSummary). Parallel over rows through the
  * threader (nullptr: serial); deterministic (integer sums, sorted pairs) whatever the number of work units. Throws an
  * itk::ExceptionObject for a label outside [0, numberOfCells). */
-template <unsigned int D, typename TLabel>
+template<unsigned int D, typename TLabel>
 LabelSummary
 SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCells, MultiThreaderBase * threader)
 {
@@ -68,15 +68,17 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
     std::vector<uint64_t> pairs;
     int64_t               badPixel{ -1 };
   };
-  const size_t workUnits = threader ? std::max<size_t>(1, threader->GetNumberOfWorkUnits()) : 1;
-  const size_t nChunks = std::min<size_t>(nRows, workUnits);
+  const size_t       workUnits = threader ? std::max<size_t>(1, threader->GetNumberOfWorkUnits()) : 1;
+  const size_t       nChunks = std::min<size_t>(nRows, workUnits);
   std::vector<Chunk> chunks(nChunks);
-  auto               scanRows = [&](size_t chunkId) {
+  auto               scanRows = [&](size_t chunkId)
+  {
     Chunk & chunk = chunks[chunkId];
     chunk.stats.assign((D + 1) * numberOfCells, 0);
     constexpr unsigned int cacheBits = 14;
     std::vector<uint64_t>  cache(size_t{ 1 } << cacheBits, ~uint64_t{ 0 });
-    auto                   addPair = [&](uint64_t key) {
+    auto                   addPair = [&](uint64_t key)
+    {
       uint64_t & slot = cache[(key * 0x9e3779b97f4a7c15ULL) >> (64 - cacheBits)];
       if (slot != key)
       {
@@ -134,9 +136,9 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
   {
     if (chunk.badPixel >= 0)
     {
-      itkGenericExceptionMacro("SummarizeLabels: label " << static_cast<int64_t>(labels[chunk.badPixel])
-                                                         << " at pixel " << chunk.badPixel << " is outside [0, "
-                                                         << numberOfCells << ")");
+      itkGenericExceptionMacro("SummarizeLabels: label " << static_cast<int64_t>(labels[chunk.badPixel]) << " at pixel "
+                                                         << chunk.badPixel << " is outside [0, " << numberOfCells
+                                                         << ")");
     }
   }
   for (const auto & chunk : chunks)
@@ -185,7 +187,9 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
       for (size_t ia = 1; ia + 1 < grid.size[a]; ++ia)
       {
         int64_t * st =
-          &summary.edgeStats[2 * (LabelSummary::NumberOfEdges3D * static_cast<size_t>(labels[base + ia * grid.stride[a]]) + e)];
+          &summary
+             .edgeStats[2 *
+                        (LabelSummary::NumberOfEdges3D * static_cast<size_t>(labels[base + ia * grid.stride[a]]) + e)];
         st[0] += 1;
         st[1] += static_cast<int64_t>(ia);
       }
@@ -206,7 +210,7 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
 /** The 2^D image corners (grid frame) in the order of LabelSummary::cornerLabels: first(cell, x) for the first corner
  * a cell holds (the cell's node goes there), extra(x) for each further corner of a cell that already has one (an
  * extra node). */
-template <unsigned int D, typename TFirst, typename TExtra>
+template<unsigned int D, typename TFirst, typename TExtra>
 void
 ForEachImageCorner(const Grid<D> & grid, const LabelSummary & summary, TFirst && first, TExtra && extra)
 {
@@ -233,7 +237,7 @@ ForEachImageCorner(const Grid<D> & grid, const LabelSummary & summary, TFirst &&
 }
 
 /** Number of node pairs (a, b) that are not an edge of any element. */
-template <size_t VVertices>
+template<size_t VVertices>
 size_t
 CountEdgesNotInMesh(const std::vector<std::array<int32_t, 2>> &         pairs,
                     const std::vector<std::array<int32_t, VVertices>> & elements)
@@ -273,9 +277,11 @@ struct DualMeshStatistics
 
 /** Compacts the used nodes, orients the elements, marks the border nodes and checks that the elements tile the
  * box. */
-template <unsigned int D>
+template<unsigned int D>
 SimplexMesh<D>
-CompactDualMesh(const Grid<D> & grid, const std::vector<double> & nodes, const std::vector<std::array<int32_t, D + 1>> & elements)
+CompactDualMesh(const Grid<D> &                                 grid,
+                const std::vector<double> &                     nodes,
+                const std::vector<std::array<int32_t, D + 1>> & elements)
 {
   const size_t         nNodes = nodes.size() / D;
   std::vector<int32_t> newIndex(nNodes, -1);
@@ -320,7 +326,7 @@ CompactDualMesh(const Grid<D> & grid, const std::vector<double> & nodes, const s
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
  * Throws an itk::ExceptionObject for a cell without voxels, a summary of another grid, a 3D grid thinner than 2
  * voxels, or a mesh that does not tile the box. */
-template <unsigned int D>
+template<unsigned int D>
 SimplexMesh<D>
 BuildDualMesh(const Grid<D> &      grid,
               const LabelSummary & summary,
@@ -343,7 +349,7 @@ BuildDualMesh(const Grid<D> &      grid,
     if (D == 3 && grid.size[k] < 2)
     {
       itkGenericExceptionMacro("the 3D dual mesh needs at least 2 voxels along every axis; axis " << k << " has "
-                                                                                                 << grid.size[k]);
+                                                                                                  << grid.size[k]);
     }
   }
   const size_t nCells = summary.numberOfCells;
@@ -364,7 +370,8 @@ BuildDualMesh(const Grid<D> &      grid,
   {
     hi[k] = static_cast<double>(grid.size[k] - 1) * grid.spacing[k];
   }
-  auto innerNode = [&](size_t c, double * x) {
+  auto innerNode = [&](size_t c, double * x)
+  {
     for (unsigned int k = 0; k < D; ++k)
     {
       x[k] = sitesGridFrame ? sitesGridFrame[c * D + k]
@@ -372,8 +379,8 @@ BuildDualMesh(const Grid<D> &      grid,
                                 static_cast<double>(summary.CellCount(c)) * grid.spacing[k];
     }
   };
-  std::vector<double>                 nodes(nCells * D);
-  std::vector<std::array<int32_t, 2>> innerPairs;
+  std::vector<double>                     nodes(nCells * D);
+  std::vector<std::array<int32_t, 2>>     innerPairs;
   std::vector<std::array<int32_t, D + 1>> elements;
 
   if constexpr (D == 2)
@@ -412,7 +419,8 @@ BuildDualMesh(const Grid<D> &      grid,
     ForEachImageCorner<D>(
       grid,
       summary,
-      [&](size_t c, const double * x) {
+      [&](size_t c, const double * x)
+      {
         kind[c] = 2;
         std::copy(x, x + D, &nodes[c * D]);
       },
@@ -483,11 +491,13 @@ BuildDualMesh(const Grid<D> &      grid,
     ForEachImageCorner<D>(
       grid,
       summary,
-      [&](size_t c, const double * x) {
+      [&](size_t c, const double * x)
+      {
         std::copy(x, x + D, &nodes[c * D]);
         freeAxes[c] = 0;
       },
-      [&](const double * x) {
+      [&](const double * x)
+      {
         nodes.insert(nodes.end(), x, x + D);
         freeAxes.push_back(0);
       });

@@ -133,9 +133,9 @@ struct LabelSummary
   bool
   operator==(const LabelSummary & o) const
   {
-    return dimension == o.dimension && size == o.size && numberOfCells == o.numberOfCells &&
-           cellStats == o.cellStats && faceStats == o.faceStats && edgeStats == o.edgeStats &&
-           cornerLabels == o.cornerLabels && adjacentPairs == o.adjacentPairs;
+    return dimension == o.dimension && size == o.size && numberOfCells == o.numberOfCells && cellStats == o.cellStats &&
+           faceStats == o.faceStats && edgeStats == o.edgeStats && cornerLabels == o.cornerLabels &&
+           adjacentPairs == o.adjacentPairs;
   }
   bool
   operator!=(const LabelSummary & o) const

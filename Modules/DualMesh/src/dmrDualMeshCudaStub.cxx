@@ -34,11 +34,13 @@ BuiltWithoutCuda()
 } // namespace
 
 struct LabelSummarizer::Impl
-{};
+{
+};
 
 LabelSummarizer::LabelSummarizer()
   : m_Impl(nullptr)
-{}
+{
+}
 
 LabelSummarizer::~LabelSummarizer() = default;
 
