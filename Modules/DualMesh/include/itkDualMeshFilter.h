@@ -58,6 +58,12 @@ namespace itk
  * Because every corner and boundary node lies on the image box, the mesh covers the box spanned by the pixel centres
  * exactly, with no inverted or zero-measure element (checked: element measures sum to the box measure).
  *
+ * The work is split in two (dmrDualMeshBuilder.h): the label image is reduced to a dmr::LabelSummary (cell voxel
+ * counts and index sums, border face/edge statistics, corner labels, adjacent cell pairs) by dmr::SummarizeLabels,
+ * and the mesh is built from the summary and the sites by dmr::BuildDualMesh. The GPU registration computes the
+ * same summary on the device (dmr::cuda::LabelSummarizer, dmrDualMeshBackend.h) and calls the builder directly, so
+ * the labels never leave the device.
+ *
  * Output: an itk::Mesh in physical space with TriangleCells (2D) or TetrahedronCells (3D); point data 1 marks nodes
  * on the image border, which the FEM stage fixes.
  *
@@ -138,17 +144,6 @@ protected:
   GenerateData() override;
 
 private:
-  void
-  GenerateData2D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
-  void
-  GenerateData3D(const dmr::Grid<ImageDimension> & grid, size_t nCells);
-  /** Compacts the used nodes, orients the elements, marks the border nodes, checks that the elements tile the box
-   * and grafts the physical-space mesh onto the output. */
-  void
-  BuildOutputMesh(const dmr::Grid<ImageDimension> &                            grid,
-                  const std::vector<double> &                                  nodes,
-                  const std::vector<std::array<int32_t, ImageDimension + 1>> & elements);
-
   SimplexMeshType m_SimplexMesh;
   bool            m_SnapToBoxEdges{ true };
   SizeValueType   m_NumberOfSkippedConstraints{ 0 };
