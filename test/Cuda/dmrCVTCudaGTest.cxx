@@ -407,6 +407,32 @@ TEST(CVTCuda, BenchmarkWarmStart256x256x132)
               << r.rejectedBatches << " rejected, " << ms(t2, t3) / std::max<size_t>(1, r.sweeps) << " ms/sweep)"
               << std::endl;
   }
+  {
+    t0 = Clock::now();
+    CVTSwapResult idle;
+    ASSERT_TRUE(Ok(gpu.Optimize(0.0, 1, idle)));
+    t1 = Clock::now();
+    EXPECT_EQ(idle.swaps, 0u);
+    std::cout << "one sweep of a converged labelling (fixed cost per sweep): " << ms(t0, t1) << " ms" << std::endl;
+    std::vector<int32_t> after(grid.numberOfPixels);
+    ASSERT_TRUE(Ok(gpu.DownloadLabels(after.data())));
+    for (const double epsilon : { 1e-5, 1e-4 })
+    {
+      ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
+      ASSERT_TRUE(Ok(gpu.SetLabels(converged.data(), cells, false)));
+      ASSERT_TRUE(Ok(gpu.SetDensity(upload.data(), false)));
+      t0 = Clock::now();
+      ASSERT_TRUE(Ok(gpu.KeepLabels(cells)));
+      CVTSwapResult e;
+      ASSERT_TRUE(Ok(gpu.Optimize(epsilon, 100000, e)));
+      t1 = Clock::now();
+      std::cout << "warm start, epsilon " << epsilon << ": KeepLabels + Optimize " << ms(t0, t1) << " ms (" << e.sweeps
+                << " sweeps, " << e.swaps << " swaps, E " << e.energyBefore << " -> " << e.energyAfter << ")"
+                << std::endl;
+    }
+    // back to the epsilon-0 result for the comparison with the CPU below
+    ASSERT_TRUE(Ok(gpu.SetLabels(after.data(), cells, false)));
+  }
   // the CPU on the same warm start, for the speed-up and one agreement check at scale
   cpu.SetDensity(grid, changed.data(), threader);
   cpu.SetLabels(converged.data(), cells);

@@ -26,6 +26,8 @@
  *     moment about the old centroid and second moment in that order (DiscreteCVT::JointEnergyChange's order).
  *  5. Decide (one block): the joint change dE as a fixed-order reduction of the cells' terms; commit if dE < 0.
  *  6. Commit: labels, masses, centroids (energy and swap count in Decide).
+ * A whole sweep (all colours, then the copy of SweepState to pinned host memory) is captured once into a CUDA graph
+ * and replayed; the host synchronises once per sweep for the stopping rule.
  * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
  * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
  * resumes with the next colour. Counts stay on the device: grid-stride kernels read them from SweepState.
@@ -38,7 +40,6 @@
 
 #include <cub/block/block_reduce.cuh>
 #include <cub/device/device_radix_sort.cuh>
-#include <cub/device/device_scan.cuh>
 #include <cub/device/device_select.cuh>
 #include <thrust/iterator/counting_iterator.h>
 
@@ -66,56 +67,59 @@ struct GridParams
   int32_t numberOfPixels;
 };
 
-/** The 3^D neighbourhood of DiscreteCVT: position q = sum_k (offset_k + 1) 3^k, centre excluded from adjacency. */
+/** The 3^D neighbourhood of DiscreteCVT as bit sets: position q = sum_k (offset_k + 1) 3^k (bit q). Everything is
+ * a compile-time constant, so the connectivity test needs no memory. */
 template<unsigned int D>
 struct Neighbourhood
 {
   static constexpr unsigned int Size = D == 2 ? 9 : 27;
   static constexpr unsigned int Centre = Size / 2;
-  int8_t                        offset[Size][D];
-  uint32_t adjacency[Size]; // bit o set: o and q differ by one along one axis, neither is the centre
-  uint32_t faceMask;        // the centre's face neighbours
 
-  static Neighbourhood
-  Make()
+  __host__ __device__ static constexpr uint32_t
+  Power(unsigned int k)
   {
-    Neighbourhood nb{};
+    return k == 0 ? 1u : 3u * Power(k - 1);
+  }
+  __host__ __device__ static constexpr int
+  Offset(unsigned int q, unsigned int k)
+  {
+    return static_cast<int>((q / Power(k)) % 3u) - 1;
+  }
+  /** The positions whose digit along axis k is not `digit`. */
+  __host__ __device__ static constexpr uint32_t
+  NotDigit(unsigned int k, unsigned int digit)
+  {
+    uint32_t mask = 0;
     for (unsigned int q = 0; q < Size; ++q)
     {
-      unsigned int rest = q;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        nb.offset[q][k] = static_cast<int8_t>(static_cast<int>(rest % 3) - 1);
-        rest /= 3;
-      }
+      mask |= (q / Power(k)) % 3u != digit ? 1u << q : 0u;
     }
-    nb.faceMask = 0;
-    for (unsigned int q = 0; q < Size; ++q)
+    return mask;
+  }
+  /** The centre's face neighbours. */
+  __host__ __device__ static constexpr uint32_t
+  FaceMask()
+  {
+    uint32_t mask = 0;
+    for (unsigned int k = 0; k < D; ++k)
     {
-      int manhattan = 0;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        manhattan += std::abs(nb.offset[q][k]);
-      }
-      if (manhattan == 1)
-      {
-        nb.faceMask |= 1u << q;
-      }
-      nb.adjacency[q] = 0;
-      for (unsigned int o = 0; o < Size; ++o)
-      {
-        int diff = 0;
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          diff += std::abs(nb.offset[q][k] - nb.offset[o][k]);
-        }
-        if (diff == 1 && o != Centre && q != Centre)
-        {
-          nb.adjacency[q] |= 1u << o;
-        }
-      }
+      mask |= (1u << (Centre - Power(k))) | (1u << (Centre + Power(k)));
     }
-    return nb;
+    return mask;
+  }
+  /** The positions that differ by one along one axis from a position of `set`. */
+  __device__ static uint32_t
+  Dilate(uint32_t set)
+  {
+    constexpr uint32_t up0 = NotDigit(0, 2), down0 = NotDigit(0, 0);
+    constexpr uint32_t up1 = NotDigit(1, 2), down1 = NotDigit(1, 0);
+    uint32_t           out = ((set & up0) << 1) | ((set & down0) >> 1) | ((set & up1) << 3) | ((set & down1) >> 3);
+    if constexpr (D == 3)
+    {
+      constexpr uint32_t up2 = NotDigit(2, 2), down2 = NotDigit(2, 0);
+      out |= ((set & up2) << 9) | ((set & down2) >> 9);
+    }
+    return out;
   }
 };
 
@@ -129,7 +133,7 @@ struct Proposal
   double   gain; // -(single-swap energy change) > 0
 };
 
-/** Device-side state of a sweep; read by the host once per sweep. */
+/** Device-side state of the optimisation (the energy) and of the current sweep; read by the host once per sweep. */
 struct SweepState
 {
   double             energy;
@@ -189,17 +193,14 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
  * face-connected (inside the neighbourhood, without p). Bit-set flood fill. */
 template<unsigned int D>
 __device__ inline bool
-RemovalKeepsCellConnected(const GridParams &       g,
-                          const Neighbourhood<D> & nb,
-                          const int32_t *          labels,
-                          int32_t                  p,
-                          const int32_t *          idx,
-                          int32_t                  own)
+RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t p, const int32_t * idx, int32_t own)
 {
+  using N = Neighbourhood<D>;
   uint32_t member = 0;
-  for (unsigned int q = 0; q < Neighbourhood<D>::Size; ++q)
+#pragma unroll
+  for (unsigned int q = 0; q < N::Size; ++q)
   {
-    if (q == Neighbourhood<D>::Centre)
+    if (q == N::Centre)
     {
       continue;
     }
@@ -207,33 +208,29 @@ RemovalKeepsCellConnected(const GridParams &       g,
     int32_t offset = 0;
     for (unsigned int k = 0; k < D; ++k)
     {
-      const int32_t c = idx[k] + nb.offset[q][k];
+      const int32_t c = idx[k] + N::Offset(q, k);
       inside = inside && c >= 0 && c < g.size[k];
-      offset += nb.offset[q][k] * g.stride[k];
+      offset += N::Offset(q, k) * g.stride[k];
     }
     if (inside && labels[p + offset] == own)
     {
       member |= 1u << q;
     }
   }
-  const uint32_t faces = member & nb.faceMask;
+  const uint32_t faces = member & N::FaceMask();
   if (faces == 0)
   {
     return false; // the pixel is its cell's last link (or its only pixel)
   }
-  uint32_t reach = 1u << (__ffs(static_cast<int>(faces)) - 1);
-  uint32_t frontier = reach;
-  while (frontier)
+  uint32_t reach = faces & (~faces + 1u); // the first face neighbour in the cell
+  for (;;)
   {
-    uint32_t next = 0;
-    while (frontier)
+    const uint32_t next = reach | (N::Dilate(reach) & member);
+    if (next == reach)
     {
-      const int q = __ffs(static_cast<int>(frontier)) - 1;
-      frontier &= frontier - 1;
-      next |= nb.adjacency[q];
+      break;
     }
-    frontier = next & member & ~reach;
-    reach |= frontier;
+    reach = next;
   }
   return (faces & ~reach) == 0;
 }
@@ -272,19 +269,18 @@ ResetBatchKernel(SweepState * state, int32_t * counters, int32_t nCells)
 /** Phase 1 for one colour (DiscreteCVT::ProposeSwap on every pixel of the colour). */
 template<unsigned int D>
 __global__ void
-ProposeKernel(GridParams       g,
-              Neighbourhood<D> nb,
-              ColourParams     cp,
-              const int32_t *  labels,
-              const float *    density,
-              const double *   mass,
-              const double *   centroid,
-              double           tolerance,
-              SweepState *     state,
-              uint8_t *        flags,
-              Proposal *       slots,
-              int32_t *        counters,
-              int32_t          nCells)
+ProposeKernel(GridParams      g,
+              ColourParams    cp,
+              const int32_t * labels,
+              const float *   density,
+              const double *  mass,
+              const double *  centroid,
+              double          tolerance,
+              SweepState *    state,
+              uint8_t *       flags,
+              Proposal *      slots,
+              int32_t *       counters,
+              int32_t         nCells)
 {
   const size_t thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
   ResetBatch(thread, static_cast<size_t>(gridDim.x) * blockDim.x, state, counters, nCells);
@@ -347,7 +343,7 @@ ProposeKernel(GridParams       g,
           bestLabel = j;
         }
       }
-      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, nb, labels, p, idx, own))
+      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, idx, own))
       {
         flag = 1;
         slots[q] = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
@@ -591,6 +587,15 @@ CommitKernel(SweepState *     state,
   }
 }
 
+/** Start of a sweep: no swap yet, not halted (the energy carries over). */
+__global__ void
+BeginSweepKernel(SweepState * state)
+{
+  state->swaps = 0;
+  state->halted = 0;
+  state->rejectedColour = -1;
+}
+
 __global__ void
 IotaKernel(uint32_t * values, int32_t n)
 {
@@ -600,9 +605,9 @@ IotaKernel(uint32_t * values, int32_t n)
   }
 }
 
-/** Smallest pixel whose label is outside [0, nCells); histogram of the valid labels. */
+/** Smallest pixel whose label is outside [0, nCells). */
 __global__ void
-ValidateKernel(const int32_t * labels, int32_t n, int32_t nCells, StatisticsReport * report, int32_t * count)
+ValidateKernel(const int32_t * labels, int32_t n, int32_t nCells, StatisticsReport * report)
 {
   for (int32_t p = blockIdx.x * blockDim.x + threadIdx.x; p < n; p += gridDim.x * blockDim.x)
   {
@@ -611,57 +616,95 @@ ValidateKernel(const int32_t * labels, int32_t n, int32_t nCells, StatisticsRepo
     {
       atomicMin(&report->badPixel, static_cast<unsigned long long>(p));
     }
-    else
+  }
+}
+
+/** Each cell's range [start, end) in the pixels sorted by label (an empty cell keeps [0, 0)). */
+__global__ void
+CellRangeKernel(const uint32_t * sortedLabels, int32_t n, int32_t * start, int32_t * end)
+{
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    const uint32_t l = sortedLabels[i];
+    if (i == 0 || sortedLabels[i - 1] != l)
     {
-      atomicAdd(&count[l], 1);
+      start[l] = i;
+    }
+    if (i + 1 == n || sortedLabels[i + 1] != l)
+    {
+      end[l] = i + 1;
     }
   }
 }
 
-/** One thread per cell: mass and centroid summed over the cell's pixels in pixel order
- * (DiscreteCVT::RecomputeStatistics). */
+/** One warp per cell: mass and centroid summed over the cell's pixels in pixel order, the order of
+ * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and form their terms (w, w x) in parallel; every lane
+ * then adds the 32 terms in order (broadcast by shuffles), so the sums are the sequential ones. */
 template<unsigned int D>
 __global__ void
 CellStatisticsKernel(GridParams         g,
                      const uint32_t *   pixels,
-                     const int32_t *    count,
                      const int32_t *    start,
+                     const int32_t *    stop,
                      const float *      density,
                      int32_t            nCells,
                      double *           mass,
                      double *           centroid,
                      StatisticsReport * report)
 {
-  for (int32_t c = blockIdx.x * blockDim.x + threadIdx.x; c < nCells; c += gridDim.x * blockDim.x)
+  constexpr unsigned int all = 0xffffffffu;
+  const int32_t          lane = static_cast<int32_t>(threadIdx.x & 31u);
+  const int32_t          warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
+  for (int32_t c = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); c < nCells; c += warps)
   {
     double m = 0.0, s[D];
     for (unsigned int k = 0; k < D; ++k)
     {
       s[k] = 0.0;
     }
-    const int32_t end = start[c] + count[c];
-    for (int32_t i = start[c]; i < end; ++i)
+    const int32_t end = stop[c];
+    for (int32_t base = start[c]; base < end; base += 32)
     {
-      const int32_t p = static_cast<int32_t>(pixels[i]);
-      int32_t       idx[D];
-      double        x[D];
-      IndexOf<D>(g, p, idx);
-      PositionOf<D>(g, idx, x);
-      const float w = density[p];
-      m += w;
+      double w = 0.0, wx[D];
       for (unsigned int k = 0; k < D; ++k)
       {
-        s[k] += w * x[k];
+        wx[k] = 0.0;
+      }
+      if (base + lane < end)
+      {
+        const int32_t p = static_cast<int32_t>(pixels[base + lane]);
+        int32_t       idx[D];
+        double        x[D];
+        IndexOf<D>(g, p, idx);
+        PositionOf<D>(g, idx, x);
+        const float wf = density[p];
+        w = wf;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          wx[k] = wf * x[k];
+        }
+      }
+      const int32_t n = min(32, end - base);
+      for (int32_t j = 0; j < n; ++j)
+      {
+        m += __shfl_sync(all, w, j);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          s[k] += __shfl_sync(all, wx[k], j);
+        }
       }
     }
-    if (!(m > 0.0))
+    if (lane == 0)
     {
-      atomicMin(&report->badCell, static_cast<unsigned long long>(c));
-    }
-    mass[c] = m;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      centroid[c * D + k] = s[k] / m;
+      if (!(m > 0.0))
+      {
+        atomicMin(&report->badCell, static_cast<unsigned long long>(c));
+      }
+      mass[c] = m;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        centroid[c * D + k] = s[k] / m;
+      }
     }
   }
 }
@@ -732,7 +775,10 @@ struct CVTSwapOptimizer::Impl
   unsigned int numberOfColours{ 0 };
   int32_t      maxColourCount{ 0 };
   int          strideBlocks{ 1 };
-  cudaStream_t stream{ nullptr }; // the legacy default stream: ordered with the caller's work on it
+  double       tolerance{ 0.0 };
+  // one non-blocking stream; a borrowed device input must be complete when it is passed
+  cudaStream_t stream{ nullptr };
+  SweepState * hostState{ nullptr }; // pinned: the per-sweep read-back
 
   DeviceBuffer<float>            ownDensity;
   const float *                  density{ nullptr };
@@ -741,7 +787,7 @@ struct CVTSwapOptimizer::Impl
   DeviceBuffer<uint32_t>         iota, sortedKeys, sortedPixels;
   size_t                         nCells{ 0 };
   DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
-  DeviceBuffer<int32_t>          counters, segment, touched, entries, cellStart;
+  DeviceBuffer<int32_t>          counters, segment, touched, entries, cellStart, cellEnd;
   DeviceBuffer<uint8_t>          flags;
   DeviceBuffer<Proposal>         slots, proposals;
   DeviceBuffer<uint32_t>         selected;
@@ -749,6 +795,38 @@ struct CVTSwapOptimizer::Impl
   DeviceBuffer<StatisticsReport> report;
   DeviceBuffer<uint8_t>          temp;
   double                         energy{ 0.0 };
+
+  // one whole sweep (all colours) as a CUDA graph, replayed every sweep; rebuilt when what it captured changes
+  cudaGraphExec_t sweepGraph{ nullptr };
+  const void *    graphKey[5]{};
+  bool            graphUnavailable{ false };
+
+  Impl() = default;
+  Impl(const Impl &) = delete;
+  Impl &
+  operator=(const Impl &) = delete;
+  ~Impl()
+  {
+    DropGraph();
+    if (hostState)
+    {
+      cudaFreeHost(hostState);
+    }
+    if (stream)
+    {
+      cudaStreamDestroy(stream);
+    }
+  }
+
+  void
+  DropGraph() noexcept
+  {
+    if (sweepGraph)
+    {
+      cudaGraphExecDestroy(sweepGraph);
+      sweepGraph = nullptr;
+    }
+  }
 
   void
   RequireGrid() const
@@ -792,6 +870,7 @@ struct CVTSwapOptimizer::Impl
     }
   }
 
+  /** Masses and centroids summed in pixel order (stable sort by label, one warp per cell), then the energy. */
   template<unsigned int D>
   void
   RecomputeStatistics(size_t numberOfCells)
@@ -816,18 +895,19 @@ struct CVTSwapOptimizer::Impl
       segment.Resize(nCells);
       touched.Resize(nCells);
       cellStart.Resize(nCells);
+      cellEnd.Resize(nCells);
     }
     report.Resize(1);
     Check(cudaMemsetAsync(report.Data(), 0xFF, sizeof(StatisticsReport), stream), "cudaMemset");
-    counters.Zero(stream);
-    ValidateKernel<<<strideBlocks, Threads, 0, stream>>>(labels.Data(), n, cells, report.Data(), counters.Data());
+    ValidateKernel<<<strideBlocks, Threads, 0, stream>>>(labels.Data(), n, cells, report.Data());
     CheckLaunch("ValidateKernel");
     StatisticsReport r{};
     report.Download(&r, 1, stream);
     if (r.badPixel != std::numeric_limits<unsigned long long>::max())
     {
       int32_t l = 0;
-      Check(cudaMemcpy(&l, labels.Data() + r.badPixel, sizeof(l), cudaMemcpyDeviceToHost), "download");
+      Check(cudaMemcpyAsync(&l, labels.Data() + r.badPixel, sizeof(l), cudaMemcpyDeviceToHost, stream), "download");
+      Check(cudaStreamSynchronize(stream), "download (synchronise)");
       std::ostringstream os;
       os << "CVTSwapOptimizer: label " << l << " at pixel " << r.badPixel << " is outside [0, " << numberOfCells << ")";
       throw CudaError(os.str());
@@ -837,30 +917,29 @@ struct CVTSwapOptimizer::Impl
     {
       ++endBit;
     }
-    size_t scanBytes = 0, sortBytes = 0;
-    Check(cub::DeviceScan::ExclusiveSum(nullptr, scanBytes, counters.Data(), cellStart.Data(), cells, stream),
-          "cub::DeviceScan::ExclusiveSum");
     const auto * keys = reinterpret_cast<const uint32_t *>(labels.Data());
+    size_t       sortBytes = 0;
     Check(cub::DeviceRadixSort::SortPairs(
             nullptr, sortBytes, keys, sortedKeys.Data(), iota.Data(), sortedPixels.Data(), n, 0, endBit, stream),
           "cub::DeviceRadixSort::SortPairs");
-    ReserveTemp(std::max(scanBytes, sortBytes));
-    scanBytes = temp.Size();
-    Check(cub::DeviceScan::ExclusiveSum(temp.Data(), scanBytes, counters.Data(), cellStart.Data(), cells, stream),
-          "cub::DeviceScan::ExclusiveSum");
+    ReserveTemp(sortBytes);
     sortBytes = temp.Size();
     Check(cub::DeviceRadixSort::SortPairs(
             temp.Data(), sortBytes, keys, sortedKeys.Data(), iota.Data(), sortedPixels.Data(), n, 0, endBit, stream),
           "cub::DeviceRadixSort::SortPairs");
-    CellStatisticsKernel<D><<<Blocks(nCells, 64), 64, 0, stream>>>(grid,
-                                                                   sortedPixels.Data(),
-                                                                   counters.Data(),
-                                                                   cellStart.Data(),
-                                                                   density,
-                                                                   cells,
-                                                                   mass.Data(),
-                                                                   centroid.Data(),
-                                                                   report.Data());
+    cellStart.Zero(stream);
+    cellEnd.Zero(stream);
+    CellRangeKernel<<<strideBlocks, Threads, 0, stream>>>(sortedKeys.Data(), n, cellStart.Data(), cellEnd.Data());
+    CheckLaunch("CellRangeKernel");
+    CellStatisticsKernel<D><<<Blocks(nCells * 32, Threads), Threads, 0, stream>>>(grid,
+                                                                                  sortedPixels.Data(),
+                                                                                  cellStart.Data(),
+                                                                                  cellEnd.Data(),
+                                                                                  density,
+                                                                                  cells,
+                                                                                  mass.Data(),
+                                                                                  centroid.Data(),
+                                                                                  report.Data());
     CheckLaunch("CellStatisticsKernel");
     report.Download(&r, 1, stream);
     if (r.badCell != std::numeric_limits<unsigned long long>::max())
@@ -891,11 +970,10 @@ struct CVTSwapOptimizer::Impl
   /** Propose + select for one colour; the count lands in state->numberOfProposals. */
   template<unsigned int D>
   void
-  EnqueuePropose(const ColourParams & cp, const Neighbourhood<D> & nb, double tolerance)
+  EnqueuePropose(const ColourParams & cp)
   {
     ProposeKernel<D><<<Blocks(static_cast<size_t>(std::max(cp.count, 1)), Threads), Threads, 0, stream>>>(
       grid,
-      nb,
       cp,
       labels.Data(),
       density,
@@ -920,12 +998,10 @@ struct CVTSwapOptimizer::Impl
           "cub::DeviceSelect::Flagged");
   }
 
-  /** Joint change of the batch in state (gathered from the slots when fromSlots), decision. */
-  template<unsigned int D>
+  /** Counts the proposals per cell (gathering them from the slots when fromSlots) and lists the touched cells. */
   void
-  EnqueueJointChange(bool fromSlots, int32_t colour, bool haltOnReject)
+  EnqueueCount(bool fromSlots)
   {
-    const int32_t cells = static_cast<int32_t>(nCells);
     CountKernel<<<strideBlocks, Threads, 0, stream>>>(state.Data(),
                                                       fromSlots ? selected.Data() : nullptr,
                                                       slots.Data(),
@@ -933,6 +1009,14 @@ struct CVTSwapOptimizer::Impl
                                                       counters.Data(),
                                                       touched.Data());
     CheckLaunch("CountKernel");
+  }
+
+  /** Joint change of the batch in state, and the decision. */
+  template<unsigned int D>
+  void
+  EnqueueJointChange(bool fromSlots, int32_t colour, bool haltOnReject)
+  {
+    EnqueueCount(fromSlots);
     AllocateKernel<<<strideBlocks, Threads, 0, stream>>>(state.Data(), counters.Data(), touched.Data(), segment.Data());
     CheckLaunch("AllocateKernel");
     ScatterKernel<<<strideBlocks, Threads, 0, stream>>>(
@@ -953,7 +1037,7 @@ struct CVTSwapOptimizer::Impl
                                                    term.Data());
     CheckLaunch("CellKernel");
     DecideKernel<<<1, Threads, 0, stream>>>(
-      state.Data(), counters.Data(), term.Data(), cells, colour, haltOnReject ? 1 : 0);
+      state.Data(), counters.Data(), term.Data(), static_cast<int32_t>(nCells), colour, haltOnReject ? 1 : 0);
     CheckLaunch("DecideKernel");
   }
 
@@ -972,12 +1056,38 @@ struct CVTSwapOptimizer::Impl
     CheckLaunch("CommitKernel");
   }
 
+  /** The sub-sweeps of colours first..last of a sweep (from its start when first is 0), then the state's copy to
+   * the pinned host copy. */
+  template<unsigned int D>
+  void
+  EnqueueSweep(unsigned int first)
+  {
+    if (first == 0)
+    {
+      BeginSweepKernel<<<1, 1, 0, stream>>>(state.Data());
+      CheckLaunch("BeginSweepKernel");
+    }
+    for (unsigned int c = first; c < numberOfColours; ++c)
+    {
+      if (colours[c].count == 0)
+      {
+        continue;
+      }
+      EnqueuePropose<D>(colours[c]);
+      EnqueueJointChange<D>(true, static_cast<int32_t>(c), true);
+      EnqueueCommit<D>();
+    }
+    Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+          "download state");
+  }
+
   SweepState
   ReadState()
   {
-    SweepState s{};
-    state.Download(&s, 1, stream);
-    return s;
+    Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+          "download state");
+    Check(cudaStreamSynchronize(stream), "download state (synchronise)");
+    return *hostState;
   }
 
   void
@@ -987,23 +1097,79 @@ struct CVTSwapOptimizer::Impl
     Check(cudaStreamSynchronize(stream), "upload (synchronise)"); // value lives on this stack frame
   }
 
+  /** A whole sweep from its start: the graph when it can be had (captured once, replayed), else direct launches. */
+  template<unsigned int D>
+  void
+  LaunchSweep()
+  {
+    const void * key[5] = {
+      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
+    };
+    if (sweepGraph && !std::equal(key, key + 5, graphKey))
+    {
+      DropGraph();
+    }
+    if (!sweepGraph && !graphUnavailable)
+    {
+      CaptureSweep<D>();
+      std::copy(key, key + 5, graphKey);
+    }
+    if (sweepGraph)
+    {
+      Check(cudaGraphLaunch(sweepGraph, stream), "cudaGraphLaunch");
+    }
+    else
+    {
+      EnqueueSweep<D>(0);
+    }
+  }
+
+  /** Captures EnqueueSweep(0) into sweepGraph; on failure the sweeps use direct launches from then on. */
+  template<unsigned int D>
+  void
+  CaptureSweep()
+  {
+    Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
+    Check(cudaStreamBeginCapture(stream, cudaStreamCaptureModeRelaxed), "cudaStreamBeginCapture");
+    cudaGraph_t graph = nullptr;
+    try
+    {
+      EnqueueSweep<D>(0);
+    }
+    catch (const CudaError &)
+    {
+      cudaStreamEndCapture(stream, &graph);
+      if (graph)
+      {
+        cudaGraphDestroy(graph);
+      }
+      cudaGetLastError();
+      graphUnavailable = true;
+      return;
+    }
+    if (cudaStreamEndCapture(stream, &graph) != cudaSuccess || !graph ||
+        cudaGraphInstantiate(&sweepGraph, graph, 0) != cudaSuccess)
+    {
+      sweepGraph = nullptr;
+      graphUnavailable = true;
+      cudaGetLastError();
+    }
+    if (graph)
+    {
+      cudaGraphDestroy(graph);
+    }
+  }
+
   /** The rejected batch of colour cp, halved on the host like DiscreteCVT::CommitProposals (the first rejection
    * is already counted). */
   template<unsigned int D>
   void
-  HalveBatch(const ColourParams & cp, const Neighbourhood<D> & nb, double tolerance, CVTSwapResult & result)
+  HalveBatch(const ColourParams & cp, CVTSwapResult & result)
   {
     WriteInt(&state.Data()->halted, 0);
-    EnqueuePropose<D>(cp, nb, tolerance); // the state is that of the rejected sub-sweep: same proposals
-    CountKernel<<<strideBlocks, Threads, 0, stream>>>(state.Data(),
-                                                      selected.Data(),
-                                                      slots.Data(),
-                                                      proposals.Data(),
-                                                      counters.Data(),
-                                                      touched.Data()); // gathers them in order
-    CheckLaunch("CountKernel");
-    const SweepState s = ReadState();
-    size_t           count = static_cast<size_t>(s.numberOfProposals);
+    EnqueuePropose<D>(cp); // the state is that of the rejected sub-sweep: same proposals
+    EnqueueCount(true);    // gathers them in pixel order
+    size_t count = static_cast<size_t>(ReadState().numberOfProposals);
     if (count <= 1)
     {
       return;
@@ -1044,43 +1210,27 @@ struct CVTSwapOptimizer::Impl
     RequireCells();
     result = CVTSwapResult{};
     result.energyBefore = energy;
-    double h2 = grid.spacing[0] * grid.spacing[0];
-    for (unsigned int k = 1; k < D; ++k)
-    {
-      h2 = std::min(h2, grid.spacing[k] * grid.spacing[k]);
-    }
-    const double           tolerance = 1e-9 * h2; // DiscreteCVT's rounding guard
-    const Neighbourhood<D> nb = Neighbourhood<D>::Make();
-    state.Resize(1);
+    *hostState = SweepState{};
+    hostState->energy = energy;
+    hostState->rejectedColour = -1;
+    Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
       const double before = energy;
-      SweepState   s{};
-      s.energy = energy;
-      s.rejectedColour = -1;
-      Check(cudaMemcpyAsync(state.Data(), &s, sizeof(s), cudaMemcpyHostToDevice, stream), "upload");
-      unsigned int first = 0;
+      LaunchSweep<D>();
       for (;;)
       {
-        for (unsigned int c = first; c < numberOfColours; ++c)
-        {
-          if (colours[c].count == 0)
-          {
-            continue;
-          }
-          EnqueuePropose<D>(colours[c], nb, tolerance);
-          EnqueueJointChange<D>(true, static_cast<int32_t>(c), true);
-          EnqueueCommit<D>();
-        }
-        s = ReadState();
+        Check(cudaStreamSynchronize(stream), "sweep (synchronise)");
+        const SweepState s = *hostState;
         if (!s.halted)
         {
           break;
         }
         ++result.rejectedBatches;
-        HalveBatch<D>(colours[s.rejectedColour], nb, tolerance, result);
-        first = static_cast<unsigned int>(s.rejectedColour) + 1;
+        HalveBatch<D>(colours[s.rejectedColour], result);
+        EnqueueSweep<D>(static_cast<unsigned int>(s.rejectedColour) + 1); // the rest of the sweep
       }
+      const SweepState & s = *hostState;
       energy = s.energy;
       ++result.sweeps;
       result.swaps += static_cast<size_t>(s.swaps);
@@ -1111,6 +1261,7 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
       m.hasLabels = false;
       m.density = nullptr;
       m.nCells = 0;
+      m.DropGraph();
       if (dimension != 2 && dimension != 3)
       {
         throw CudaError("CVTSwapOptimizer: the dimension must be 2 or 3");
@@ -1159,7 +1310,24 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
       int device = 0, sms = 1;
       Check(cudaGetDevice(&device), "cudaGetDevice");
       Check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device), "cudaDeviceGetAttribute");
-      m.strideBlocks = 4 * sms;
+      m.strideBlocks = 2 * sms; // grid-stride kernels: their work is known on the device only
+      if (!m.stream)
+      {
+        Check(cudaStreamCreateWithFlags(&m.stream, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
+      }
+      if (!m.hostState)
+      {
+        void * pinned = nullptr;
+        Check(cudaMallocHost(&pinned, sizeof(SweepState)), "cudaMallocHost");
+        m.hostState = static_cast<SweepState *>(pinned);
+      }
+      // DiscreteCVT's rounding guard: 1e-9 x the smallest squared pixel size
+      double h2 = g.spacing[0] * g.spacing[0];
+      for (unsigned int k = 1; k < dimension; ++k)
+      {
+        h2 = std::min(h2, g.spacing[k] * g.spacing[k]);
+      }
+      m.tolerance = 1e-9 * h2;
       m.labels.Resize(n);
       m.iota.Resize(n);
       m.sortedKeys.Resize(n);
@@ -1184,6 +1352,7 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
                                        m.stream),
             "cub::DeviceSelect::Flagged");
       m.ReserveTemp(selectBytes);
+      Check(cudaStreamSynchronize(m.stream), "SetGrid (synchronise)");
       m.dimension = dimension;
     });
 }

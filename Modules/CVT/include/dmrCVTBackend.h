@@ -55,8 +55,10 @@ struct CVTSwapResult
  * agrees to rounding, about 1e-15 relative). A rejected batch is halved on the host (rare).
  *
  * Typical use: SetGrid, SetDensity, SetLabels (e.g. from the CPU contraction), Optimize; for the next registration
- * iteration SetDensity with the new density and KeepLabels (warm start), Optimize. Not thread-safe; one CUDA stream
- * per object. */
+ * iteration SetDensity with the new density and KeepLabels (warm start), Optimize. The work runs on the object's own
+ * CUDA stream (a sweep is one replayed CUDA graph, one small read-back per sweep): device memory passed in must
+ * hold its final values when it is passed (the producer's stream synchronised), and every call returns with its
+ * work finished, so DeviceLabels() can be read by any stream afterwards. Not thread-safe. */
 class DynamicMeshRegistration_EXPORT CVTSwapOptimizer
 {
 public:
