@@ -33,7 +33,7 @@
  * resumes with the next colour. Counts stay on the device: grid-stride kernels read them from SweepState.
  *
  * Statistics (SetLabels/KeepLabels): a stable radix sort of the pixels by label gives each cell's pixels in pixel
- * order, summed sequentially by one thread per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
+ * order, summed in that order by one warp per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
  * fixed-shape (deterministic) reduction. */
 #include "dmrCVTBackend.h"
 #include "dmrCudaUtils.cuh"
@@ -44,7 +44,6 @@
 #include <thrust/iterator/counting_iterator.h>
 
 #include <algorithm>
-#include <cstdlib>
 #include <limits>
 #include <sstream>
 
@@ -759,11 +758,6 @@ EnergyFinalKernel(const double * partial, int32_t n, double * energy)
   }
 }
 
-const char *
-DimensionError()
-{
-  return "CVTSwapOptimizer: SetGrid must be called first (dimension 2 or 3)";
-}
 } // namespace
 
 struct CVTSwapOptimizer::Impl
@@ -833,7 +827,7 @@ struct CVTSwapOptimizer::Impl
   {
     if (dimension != 2 && dimension != 3)
     {
-      throw CudaError(DimensionError());
+      throw CudaError("CVTSwapOptimizer: SetGrid must be called first (dimension 2 or 3)");
     }
   }
 

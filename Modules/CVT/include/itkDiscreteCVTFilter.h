@@ -132,7 +132,7 @@ protected:
 
 private:
   /** The swap optimisation on the GPU, from the core's labels; the core then takes the optimised labels. */
-  dmr::cuda::CVTSwapResult
+  typename CoreType::OptimizeResult
   OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid);
 
   SizeValueType m_NumberOfCells{ 2000 };

@@ -66,10 +66,6 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
     itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
                                         << ")");
   }
-  if (m_Backend == BackendEnum::CUDA && !dmr::cuda::DeviceAvailable())
-  {
-    itkExceptionMacro("CUDA back-end requested but " << dmr::cuda::UnavailableReason());
-  }
   const LabelImageType * initial = this->GetInitialLabels();
   if (initial && initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
   {
@@ -183,21 +179,12 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
 
   t0 = Clock::now();
   m_InitialEnergy = m_Core.GetEnergy();
-  if (m_BackendUsed == BackendEnum::CUDA)
-  {
-    const dmr::cuda::CVTSwapResult result = this->OptimizeOnDevice(grid);
-    m_Energy = result.energyAfter;
-    m_NumberOfSweeps = result.sweeps;
-    m_NumberOfSwaps = result.swaps;
-  }
-  else
-  {
-    const auto result = m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
-    m_Energy = result.energyAfter;
-    m_NumberOfSweeps = result.sweeps;
-    m_NumberOfSwaps = result.swaps;
-  }
+  const auto result = m_BackendUsed == BackendEnum::CUDA ? this->OptimizeOnDevice(grid)
+                                                         : m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
   m_OptimizationTime = std::chrono::duration<double>(Clock::now() - t0).count();
+  m_Energy = result.energyAfter;
+  m_NumberOfSweeps = result.sweeps;
+  m_NumberOfSwaps = result.swaps;
   progress.CompletedPixel();
 
   LabelImageType * output = this->GetOutput();
@@ -226,8 +213,9 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
 }
 
 template <typename TDensityImage, typename TLabelImage>
-dmr::cuda::CVTSwapResult
-DiscreteCVTFilter<TDensityImage, TLabelImage>::OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid)
+auto
+DiscreteCVTFilter<TDensityImage, TLabelImage>::OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid) ->
+  typename CoreType::OptimizeResult
 {
   if (!m_DeviceOptimizer)
   {
@@ -250,7 +238,7 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::OptimizeOnDevice(const dmr::Grid<
   std::vector<int32_t> labels(grid.numberOfPixels);
   check(gpu.DownloadLabels(labels.data()));
   m_Core.SetLabels(labels.data(), numberOfCells);
-  return result;
+  return { result.sweeps, result.swaps, result.rejectedBatches, result.energyBefore, result.energyAfter };
 }
 
 template <typename TDensityImage, typename TLabelImage>
