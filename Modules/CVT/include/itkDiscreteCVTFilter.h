@@ -22,6 +22,8 @@
 #include "itkPointSet.h"
 #include "itkDynamicMeshRegistrationEnums.h"
 #include "dmrDiscreteCVT.h"
+#include "dmrCVTBackend.h"
+#include <memory>
 
 namespace itk
 {
@@ -34,6 +36,10 @@ namespace itk
  * least-cost pair contraction of paper 4.4 (from BlockSize^D blocks: 1 in 2D, 4 in 3D by default, paper Table 1).
  * The tessellation is then optimised by the parallel boundary-pixel swaps of paper Algorithm 1 with a two-phase,
  * parity-coloured rule that never raises the energy and keeps every cell connected (see dmr::DiscreteCVT).
+ *
+ * Backend: CPU; CUDA (the contraction stays on the CPU, the swap optimisation runs on the GPU through
+ * dmr::cuda::CVTSwapOptimizer with the same rule and arithmetic, hence the same labels; throws when no device is
+ * usable); Auto (default): CUDA when a device is present, else CPU. GetBackendUsed() tells which one ran.
  *
  * Output 0: the label image (labels 0..N-1, same geometry as the density). Output 1: the sites, i.e. the
  * density-weighted centroids of the cells, as a PointSet in physical coordinates (point i = site of cell i, point
@@ -96,7 +102,8 @@ public:
   SitesType *
   GetSites();
 
-  /** The CPU core of the last update: masses and centroids in the grid frame. */
+  /** The CPU core of the last update: masses and centroids in the grid frame (on the CUDA back-end it takes the
+   * optimised labels and recomputes them). */
   const CoreType &
   GetCore() const
   {
@@ -124,6 +131,10 @@ protected:
   MakeOutput(DataObjectPointerArraySizeType idx) override;
 
 private:
+  /** The swap optimisation on the GPU, from the core's labels; the core then takes the optimised labels. */
+  typename CoreType::OptimizeResult
+  OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid);
+
   SizeValueType m_NumberOfCells{ 2000 };
   unsigned int  m_BlockSize{ ImageDimension == 2 ? 1u : 4u };
   double        m_Epsilon{ 0.0 };
@@ -138,6 +149,7 @@ private:
   double        m_OptimizationTime{ 0.0 };
   CoreType      m_Core;
   std::vector<float> m_DensityBuffer;
+  std::unique_ptr<dmr::cuda::CVTSwapOptimizer> m_DeviceOptimizer; // kept between updates (device allocations)
 };
 } // namespace itk
 

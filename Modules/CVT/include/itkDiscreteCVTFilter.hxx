@@ -22,6 +22,7 @@
 #include "itkImageRegionConstIterator.h"
 #include "itkProgressReporter.h"
 #include "dmrCudaBackend.h"
+#include <memory>
 #include <chrono>
 
 namespace itk
@@ -64,12 +65,6 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
   {
     itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
                                         << ")");
-  }
-  if (m_Backend == BackendEnum::CUDA)
-  {
-    itkExceptionMacro("the CUDA back-end of DiscreteCVTFilter is not available: "
-                      << (dmr::cuda::DeviceAvailable() ? std::string("its kernels are not part of this version")
-                                                       : dmr::cuda::UnavailableReason()));
   }
   const LabelImageType * initial = this->GetInitialLabels();
   if (initial && initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
@@ -124,7 +119,19 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
   ProgressReporter         progress(this, 0, 3);
   const DensityImageType * density = this->GetInput();
   const auto               grid = dmr::Grid<ImageDimension>::FromImage(density);
-  m_BackendUsed = BackendEnum::CPU;
+  // STYLE.md section 4: the contraction stays on the CPU, the swap optimisation runs on the GPU when one is used
+  if (m_Backend != BackendEnum::CPU && dmr::cuda::DeviceAvailable())
+  {
+    m_BackendUsed = BackendEnum::CUDA;
+  }
+  else if (m_Backend == BackendEnum::CUDA)
+  {
+    itkExceptionMacro("CUDA back-end requested but " << dmr::cuda::UnavailableReason());
+  }
+  else
+  {
+    m_BackendUsed = BackendEnum::CPU;
+  }
 
   m_DensityBuffer.resize(grid.numberOfPixels);
   {
@@ -172,7 +179,8 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
 
   t0 = Clock::now();
   m_InitialEnergy = m_Core.GetEnergy();
-  const auto result = m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
+  const auto result = m_BackendUsed == BackendEnum::CUDA ? this->OptimizeOnDevice(grid)
+                                                         : m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
   m_OptimizationTime = std::chrono::duration<double>(Clock::now() - t0).count();
   m_Energy = result.energyAfter;
   m_NumberOfSweeps = result.sweeps;
@@ -202,6 +210,35 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
     sites->SetPointData(c, masses[c]);
   }
   progress.CompletedPixel();
+}
+
+template <typename TDensityImage, typename TLabelImage>
+auto
+DiscreteCVTFilter<TDensityImage, TLabelImage>::OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid) ->
+  typename CoreType::OptimizeResult
+{
+  if (!m_DeviceOptimizer)
+  {
+    m_DeviceOptimizer = std::make_unique<dmr::cuda::CVTSwapOptimizer>();
+  }
+  dmr::cuda::CVTSwapOptimizer & gpu = *m_DeviceOptimizer;
+  auto                          check = [this](const dmr::cuda::Status & status) {
+    if (!status.Ok())
+    {
+      itkExceptionMacro("CUDA swap optimisation failed: " << status.message);
+    }
+  };
+  const size_t numberOfCells = m_Core.GetNumberOfCells();
+  check(gpu.SetGrid(ImageDimension, grid.size.data(), grid.spacing.data()));
+  check(gpu.SetDensity(m_DensityBuffer.data(), false));
+  check(gpu.SetLabels(m_Core.GetLabels().data(), numberOfCells, false));
+  dmr::cuda::CVTSwapResult result;
+  check(gpu.Optimize(m_Epsilon, m_MaximumNumberOfSweeps, result));
+  // the core takes the optimised labels, so GetCore() and the sites describe this update on both back-ends
+  std::vector<int32_t> labels(grid.numberOfPixels);
+  check(gpu.DownloadLabels(labels.data()));
+  m_Core.SetLabels(labels.data(), numberOfCells);
+  return { result.sweeps, result.swaps, result.rejectedBatches, result.energyBefore, result.energyAfter };
 }
 
 template <typename TDensityImage, typename TLabelImage>

@@ -1,0 +1,1502 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+/** CUDA kernels and launchers of the CVT swap optimisation (see dmrCVTBackend.h and dmr::DiscreteCVT<D>).
+ *
+ * One sub-sweep (one parity colour) is a fixed chain of launches without a host round trip:
+ *  1. Propose: one thread per pixel of the colour, against the frozen labels (the rule of DiscreteCVT::BestSwap);
+ *     writes a flag and, where flagged, the proposal at the pixel's slot. Also clears the batch scratch.
+ *  2. cub::DeviceSelect::Flagged over the slot numbers: the proposals in pixel order and their number (on device).
+ *  3. Count/Allocate/Scatter: for each cell touched by the batch, the list of (proposal, side) entries.
+ *  4. Cell: one thread per touched cell sorts its entries by proposal index and sums the deltas of mass, first
+ *     moment about the old centroid and second moment in that order (DiscreteCVT::JointEnergyChange's order).
+ *  5. Decide (one block): the joint change dE as a fixed-order reduction of the cells' terms; commit if dE < 0.
+ *  6. Commit: labels, masses, centroids (energy and swap count in Decide).
+ * A whole sweep (all colours, then the copy of SweepState to pinned host memory) is captured once into a CUDA graph
+ * and replayed; the host synchronises once per sweep for the stopping rule.
+ * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
+ * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
+ * resumes with the next colour. Counts stay on the device: grid-stride kernels read them from SweepState.
+ *
+ * Statistics (SetLabels/KeepLabels): a stable radix sort of the pixels by label gives each cell's pixels in pixel
+ * order, summed in that order by one warp per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
+ * fixed-shape (deterministic) reduction. */
+#include "dmrCVTBackend.h"
+#include "dmrCudaUtils.cuh"
+
+#include <cub/block/block_reduce.cuh>
+#include <cub/device/device_radix_sort.cuh>
+#include <cub/device/device_select.cuh>
+#include <thrust/iterator/counting_iterator.h>
+
+#include <algorithm>
+#include <limits>
+#include <sstream>
+
+namespace itk
+{
+namespace dmr
+{
+namespace cuda
+{
+namespace
+{
+constexpr unsigned int Threads = 256;
+constexpr unsigned int EnergyBlocks = 512; // fixed: the energy reduction has one shape for a given grid
+
+struct GridParams
+{
+  int32_t size[3];
+  int32_t stride[3];
+  double  spacing[3];
+  int32_t numberOfPixels;
+};
+
+/** The 3^D neighbourhood of DiscreteCVT as bit sets: position q = sum_k (offset_k + 1) 3^k (bit q). Everything is
+ * a compile-time constant, so the connectivity test needs no memory. */
+template<unsigned int D>
+struct Neighbourhood
+{
+  static constexpr unsigned int Size = D == 2 ? 9 : 27;
+  static constexpr unsigned int Centre = Size / 2;
+
+  __host__ __device__ static constexpr uint32_t
+  Power(unsigned int k)
+  {
+    return k == 0 ? 1u : 3u * Power(k - 1);
+  }
+  __host__ __device__ static constexpr int
+  Offset(unsigned int q, unsigned int k)
+  {
+    return static_cast<int>((q / Power(k)) % 3u) - 1;
+  }
+  /** The positions whose digit along axis k is not `digit`. */
+  __host__ __device__ static constexpr uint32_t
+  NotDigit(unsigned int k, unsigned int digit)
+  {
+    uint32_t mask = 0;
+    for (unsigned int q = 0; q < Size; ++q)
+    {
+      mask |= (q / Power(k)) % 3u != digit ? 1u << q : 0u;
+    }
+    return mask;
+  }
+  /** The centre's face neighbours. */
+  __host__ __device__ static constexpr uint32_t
+  FaceMask()
+  {
+    uint32_t mask = 0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      mask |= (1u << (Centre - Power(k))) | (1u << (Centre + Power(k)));
+    }
+    return mask;
+  }
+  /** The positions that differ by one along one axis from a position of `set`. */
+  __device__ static uint32_t
+  Dilate(uint32_t set)
+  {
+    constexpr uint32_t up0 = NotDigit(0, 2), down0 = NotDigit(0, 0);
+    constexpr uint32_t up1 = NotDigit(1, 2), down1 = NotDigit(1, 0);
+    uint32_t           out = ((set & up0) << 1) | ((set & down0) >> 1) | ((set & up1) << 3) | ((set & down1) >> 3);
+    if constexpr (D == 3)
+    {
+      constexpr uint32_t up2 = NotDigit(2, 2), down2 = NotDigit(2, 0);
+      out |= ((set & up2) << 9) | ((set & down2) >> 9);
+    }
+    return out;
+  }
+};
+
+/** One pixel's proposed swap. */
+struct Proposal
+{
+  uint32_t pixel;
+  int32_t  from;
+  int32_t  to;
+  int32_t  unused;
+  double   gain; // -(single-swap energy change) > 0
+};
+
+/** Device-side state of the optimisation (the energy) and of the current sweep; read by the host once per sweep. */
+struct SweepState
+{
+  double             energy;
+  double             dE;
+  unsigned long long swaps;  // committed in this sweep
+  int32_t            halted; // a batch of this sweep was rejected: later kernels of the sweep do nothing
+  int32_t            rejectedColour;
+  int32_t            commit; // the current batch is committed
+  int32_t            numberOfProposals;
+  int32_t            numberOfTouched;
+  int32_t            cursor;
+};
+
+/** Outcome of the statistics recomputation. */
+struct StatisticsReport
+{
+  unsigned long long badPixel; // smallest pixel with a label outside [0, n), or ~0
+  unsigned long long badCell;  // smallest cell with no positive mass, or ~0
+};
+
+template<unsigned int D>
+__device__ inline void
+IndexOf(const GridParams & g, int32_t p, int32_t * idx)
+{
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    idx[k] = p % g.size[k];
+    p /= g.size[k];
+  }
+}
+
+template<unsigned int D>
+__device__ inline void
+PositionOf(const GridParams & g, const int32_t * idx, double * x)
+{
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    x[k] = static_cast<double>(idx[k]) * g.spacing[k];
+  }
+}
+
+/** Paper Eq. 23, the arithmetic of dmr::SwapEnergyChange. */
+template<unsigned int D>
+__device__ inline double
+SwapEnergyChange(double w, const double * x, double mi, const double * ri, double mj, const double * rj)
+{
+  double di = 0.0, dj = 0.0;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    di += (x[k] - ri[k]) * (x[k] - ri[k]);
+    dj += (x[k] - rj[k]) * (x[k] - rj[k]);
+  }
+  return w * (mj / (mj + w) * dj - mi / (mi - w) * di);
+}
+
+/** DiscreteCVT::RemovalKeepsCellConnected: the cell's pixels of the 3^D neighbourhood that touch p by a face stay
+ * face-connected (inside the neighbourhood, without p). Bit-set flood fill. */
+template<unsigned int D>
+__device__ inline bool
+RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t p, const int32_t * idx, int32_t own)
+{
+  using N = Neighbourhood<D>;
+  uint32_t member = 0;
+#pragma unroll
+  for (unsigned int q = 0; q < N::Size; ++q)
+  {
+    if (q == N::Centre)
+    {
+      continue;
+    }
+    bool    inside = true;
+    int32_t offset = 0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const int32_t c = idx[k] + N::Offset(q, k);
+      inside = inside && c >= 0 && c < g.size[k];
+      offset += N::Offset(q, k) * g.stride[k];
+    }
+    if (inside && labels[p + offset] == own)
+    {
+      member |= 1u << q;
+    }
+  }
+  const uint32_t faces = member & N::FaceMask();
+  if (faces == 0)
+  {
+    return false; // the pixel is its cell's last link (or its only pixel)
+  }
+  uint32_t reach = faces & (~faces + 1u); // the first face neighbour in the cell
+  for (;;)
+  {
+    const uint32_t next = reach | (N::Dilate(reach) & member);
+    if (next == reach)
+    {
+      break;
+    }
+    reach = next;
+  }
+  return (faces & ~reach) == 0;
+}
+
+struct ColourParams
+{
+  int32_t origin[3];
+  int32_t sub[3];
+  int32_t count;
+  int32_t colour;
+};
+
+/** Resets the batch scratch (per-cell counters, touched list, segment cursor). */
+__device__ inline void
+ResetBatch(size_t thread, size_t threads, SweepState * state, int32_t * counters, int32_t nCells)
+{
+  if (thread == 0)
+  {
+    state->numberOfTouched = 0;
+    state->cursor = 0;
+    state->commit = 0;
+  }
+  for (size_t c = thread; c < 2 * static_cast<size_t>(nCells); c += threads)
+  {
+    counters[c] = 0;
+  }
+}
+
+__global__ void
+ResetBatchKernel(SweepState * state, int32_t * counters, int32_t nCells)
+{
+  ResetBatch(
+    blockIdx.x * blockDim.x + threadIdx.x, static_cast<size_t>(gridDim.x) * blockDim.x, state, counters, nCells);
+}
+
+/** Phase 1 for one colour (DiscreteCVT::ProposeSwap on every pixel of the colour). */
+template<unsigned int D>
+__global__ void
+ProposeKernel(GridParams      g,
+              ColourParams    cp,
+              const int32_t * labels,
+              const float *   density,
+              const double *  mass,
+              const double *  centroid,
+              double          tolerance,
+              SweepState *    state,
+              uint8_t *       flags,
+              Proposal *      slots,
+              int32_t *       counters,
+              int32_t         nCells)
+{
+  const size_t thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
+  ResetBatch(thread, static_cast<size_t>(gridDim.x) * blockDim.x, state, counters, nCells);
+  if (thread >= static_cast<size_t>(cp.count))
+  {
+    return;
+  }
+  const int32_t q = static_cast<int32_t>(thread);
+  if (state->halted)
+  {
+    flags[q] = 0;
+    return;
+  }
+  int32_t idx[D];
+  int32_t p = 0, rest = q;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    idx[k] = cp.origin[k] + 2 * (rest % cp.sub[k]);
+    rest /= cp.sub[k];
+    p += idx[k] * g.stride[k];
+  }
+  const int32_t own = labels[p];
+  // DiscreteCVT::NeighbourCells: distinct other labels of the face neighbours, axis by axis, lower then upper
+  int32_t      candidates[2 * D];
+  unsigned int nc = 0;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    const int32_t lower = idx[k] > 0 ? p - g.stride[k] : p;
+    const int32_t upper = idx[k] + 1 < g.size[k] ? p + g.stride[k] : p;
+    for (int s = 0; s < 2; ++s)
+    {
+      const int32_t l = labels[s == 0 ? lower : upper];
+      bool          known = l == own;
+      for (unsigned int j = 0; j < nc; ++j)
+      {
+        known |= candidates[j] == l;
+      }
+      candidates[nc] = l;
+      nc += known ? 0u : 1u;
+    }
+  }
+  uint8_t flag = 0;
+  if (nc > 0)
+  {
+    const double w = static_cast<double>(density[p]);
+    const double mi = mass[own];
+    if (mi - w > 0.0)
+    {
+      double x[D];
+      PositionOf<D>(g, idx, x);
+      double  best = -tolerance * w;
+      int32_t bestLabel = own;
+      for (unsigned int c = 0; c < nc; ++c)
+      {
+        const int32_t j = candidates[c];
+        const double  dE = SwapEnergyChange<D>(w, x, mi, &centroid[own * D], mass[j], &centroid[j * D]);
+        if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
+        {
+          best = dE;
+          bestLabel = j;
+        }
+      }
+      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, idx, own))
+      {
+        flag = 1;
+        slots[q] = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
+      }
+    }
+  }
+  flags[q] = flag;
+}
+
+/** Gathers the selected proposals (when selected is not null) and counts, per cell, the proposals touching it;
+ * lists the touched cells. */
+__global__ void
+CountKernel(SweepState *     state,
+            const uint32_t * selected,
+            const Proposal * slots,
+            Proposal *       proposals,
+            int32_t *        count,
+            int32_t *        touched)
+{
+  if (state->halted)
+  {
+    return;
+  }
+  const int32_t n = state->numberOfProposals;
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    Proposal prop;
+    if (selected)
+    {
+      prop = slots[selected[i]];
+      proposals[i] = prop;
+    }
+    else
+    {
+      prop = proposals[i];
+    }
+    for (int side = 0; side < 2; ++side)
+    {
+      const int32_t c = side == 0 ? prop.from : prop.to;
+      if (atomicAdd(&count[c], 1) == 0)
+      {
+        touched[atomicAdd(&state->numberOfTouched, 1)] = c;
+      }
+    }
+  }
+}
+
+/** Places every touched cell's segment of entries (where does not matter: each is sorted later). */
+__global__ void
+AllocateKernel(SweepState * state, const int32_t * count, const int32_t * touched, int32_t * segment)
+{
+  if (state->halted)
+  {
+    return;
+  }
+  const int32_t n = state->numberOfTouched;
+  for (int32_t j = blockIdx.x * blockDim.x + threadIdx.x; j < n; j += gridDim.x * blockDim.x)
+  {
+    const int32_t c = touched[j];
+    segment[c] = atomicAdd(&state->cursor, count[c]);
+  }
+}
+
+/** Entry 2 i + side of proposal i (side 0: its former cell, 1: its new cell) into the cell's segment. */
+__global__ void
+ScatterKernel(SweepState *     state,
+              const Proposal * proposals,
+              const int32_t *  segment,
+              int32_t *        fill,
+              int32_t *        entries)
+{
+  if (state->halted)
+  {
+    return;
+  }
+  const int32_t n = state->numberOfProposals;
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    const Proposal prop = proposals[i];
+    for (int side = 0; side < 2; ++side)
+    {
+      const int32_t c = side == 0 ? prop.from : prop.to;
+      entries[segment[c] + atomicAdd(&fill[c], 1)] = 2 * i + side;
+    }
+  }
+}
+
+/** Per touched cell: the deltas of DiscreteCVT::JointEnergyChange summed in proposal order, and the cell's term
+ * dQ - |dS|^2 / (m + dm) of the joint change. */
+template<unsigned int D>
+__global__ void
+CellKernel(GridParams       g,
+           SweepState *     state,
+           const Proposal * proposals,
+           const float *    density,
+           const double *   mass,
+           const double *   centroid,
+           const int32_t *  count,
+           const int32_t *  touched,
+           const int32_t *  segment,
+           int32_t *        entries,
+           double *         deltaMass,
+           double *         deltaMoment,
+           double *         term)
+{
+  if (state->halted)
+  {
+    return;
+  }
+  const int32_t n = state->numberOfTouched;
+  for (int32_t j = blockIdx.x * blockDim.x + threadIdx.x; j < n; j += gridDim.x * blockDim.x)
+  {
+    const int32_t c = touched[j];
+    int32_t *     e = entries + segment[c];
+    const int32_t len = count[c];
+    for (int32_t a = 1; a < len; ++a) // insertion sort: segments are short
+    {
+      const int32_t v = e[a];
+      int32_t       b = a - 1;
+      while (b >= 0 && e[b] > v)
+      {
+        e[b + 1] = e[b];
+        --b;
+      }
+      e[b + 1] = v;
+    }
+    double r[D], dS[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      r[k] = centroid[c * D + k];
+      dS[k] = 0.0;
+    }
+    double dm = 0.0, dQ = 0.0;
+    for (int32_t a = 0; a < len; ++a)
+    {
+      const Proposal & prop = proposals[e[a] >> 1];
+      const double     wp = static_cast<double>(density[prop.pixel]);
+      const double     w = (e[a] & 1) ? wp : -wp;
+      int32_t          idx[D];
+      double           x[D];
+      IndexOf<D>(g, static_cast<int32_t>(prop.pixel), idx);
+      PositionOf<D>(g, idx, x);
+      double d2 = 0.0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        const double d = x[k] - r[k];
+        dS[k] += w * d;
+        d2 += d * d;
+      }
+      dm += w;
+      dQ += w * d2;
+    }
+    double s2 = 0.0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      s2 += dS[k] * dS[k];
+      deltaMoment[c * D + k] = dS[k];
+    }
+    deltaMass[c] = dm;
+    term[c] = dQ - s2 / (mass[c] + dm);
+  }
+}
+
+/** One block: dE = sum of the touched cells' terms (fixed order), the commit decision, energy and swap count. */
+__global__ void
+DecideKernel(SweepState *    state,
+             const int32_t * count,
+             const double *  term,
+             int32_t         nCells,
+             int32_t         colour,
+             int32_t         haltOnReject)
+{
+  if (state->halted)
+  {
+    return;
+  }
+  double sum = 0.0;
+  for (int32_t c = threadIdx.x; c < nCells; c += blockDim.x)
+  {
+    sum += count[c] > 0 ? term[c] : 0.0;
+  }
+  using Reduce = cub::BlockReduce<double, Threads>;
+  __shared__ typename Reduce::TempStorage storage;
+  const double                            dE = Reduce(storage).Sum(sum);
+  if (threadIdx.x == 0)
+  {
+    const int32_t n = state->numberOfProposals;
+    state->dE = dE;
+    state->commit = 0;
+    if (n > 0)
+    {
+      if (dE < 0.0)
+      {
+        state->commit = 1;
+        state->energy += dE;
+        state->swaps += static_cast<unsigned long long>(n);
+      }
+      else if (haltOnReject)
+      {
+        state->halted = 1;
+        state->rejectedColour = colour;
+      }
+    }
+  }
+}
+
+/** Commits the batch: new labels, and per touched cell m += dm, r += dS / m (DiscreteCVT::CommitProposals). */
+template<unsigned int D>
+__global__ void
+CommitKernel(SweepState *     state,
+             const Proposal * proposals,
+             const int32_t *  touched,
+             const double *   deltaMass,
+             const double *   deltaMoment,
+             int32_t *        labels,
+             double *         mass,
+             double *         centroid)
+{
+  if (state->halted || !state->commit)
+  {
+    return;
+  }
+  const int32_t n = state->numberOfProposals;
+  const int32_t nt = state->numberOfTouched;
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < max(n, nt); i += gridDim.x * blockDim.x)
+  {
+    if (i < n)
+    {
+      labels[proposals[i].pixel] = proposals[i].to;
+    }
+    if (i < nt)
+    {
+      const int32_t c = touched[i];
+      const double  m = mass[c] + deltaMass[c];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        centroid[c * D + k] += deltaMoment[c * D + k] / m;
+      }
+      mass[c] = m;
+    }
+  }
+}
+
+/** Start of a sweep: no swap yet, not halted (the energy carries over). */
+__global__ void
+BeginSweepKernel(SweepState * state)
+{
+  state->swaps = 0;
+  state->halted = 0;
+  state->rejectedColour = -1;
+}
+
+__global__ void
+IotaKernel(uint32_t * values, int32_t n)
+{
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    values[i] = static_cast<uint32_t>(i);
+  }
+}
+
+/** Smallest pixel whose label is outside [0, nCells). */
+__global__ void
+ValidateKernel(const int32_t * labels, int32_t n, int32_t nCells, StatisticsReport * report)
+{
+  for (int32_t p = blockIdx.x * blockDim.x + threadIdx.x; p < n; p += gridDim.x * blockDim.x)
+  {
+    const int32_t l = labels[p];
+    if (l < 0 || l >= nCells)
+    {
+      atomicMin(&report->badPixel, static_cast<unsigned long long>(p));
+    }
+  }
+}
+
+/** Each cell's range [start, end) in the pixels sorted by label (an empty cell keeps [0, 0)). */
+__global__ void
+CellRangeKernel(const uint32_t * sortedLabels, int32_t n, int32_t * start, int32_t * end)
+{
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    const uint32_t l = sortedLabels[i];
+    if (i == 0 || sortedLabels[i - 1] != l)
+    {
+      start[l] = i;
+    }
+    if (i + 1 == n || sortedLabels[i + 1] != l)
+    {
+      end[l] = i + 1;
+    }
+  }
+}
+
+/** One warp per cell: mass and centroid summed over the cell's pixels in pixel order, the order of
+ * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and form their terms (w, w x) in parallel; every lane
+ * then adds the 32 terms in order (broadcast by shuffles), so the sums are the sequential ones. */
+template<unsigned int D>
+__global__ void
+CellStatisticsKernel(GridParams         g,
+                     const uint32_t *   pixels,
+                     const int32_t *    start,
+                     const int32_t *    stop,
+                     const float *      density,
+                     int32_t            nCells,
+                     double *           mass,
+                     double *           centroid,
+                     StatisticsReport * report)
+{
+  constexpr unsigned int all = 0xffffffffu;
+  const int32_t          lane = static_cast<int32_t>(threadIdx.x & 31u);
+  const int32_t          warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
+  for (int32_t c = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); c < nCells; c += warps)
+  {
+    double m = 0.0, s[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      s[k] = 0.0;
+    }
+    const int32_t end = stop[c];
+    for (int32_t base = start[c]; base < end; base += 32)
+    {
+      double w = 0.0, wx[D];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        wx[k] = 0.0;
+      }
+      if (base + lane < end)
+      {
+        const int32_t p = static_cast<int32_t>(pixels[base + lane]);
+        int32_t       idx[D];
+        double        x[D];
+        IndexOf<D>(g, p, idx);
+        PositionOf<D>(g, idx, x);
+        const float wf = density[p];
+        w = wf;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          wx[k] = wf * x[k];
+        }
+      }
+      const int32_t n = min(32, end - base);
+      for (int32_t j = 0; j < n; ++j)
+      {
+        m += __shfl_sync(all, w, j);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          s[k] += __shfl_sync(all, wx[k], j);
+        }
+      }
+    }
+    if (lane == 0)
+    {
+      if (!(m > 0.0))
+      {
+        atomicMin(&report->badCell, static_cast<unsigned long long>(c));
+      }
+      mass[c] = m;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        centroid[c * D + k] = s[k] / m;
+      }
+    }
+  }
+}
+
+/** Energy, paper Eq. 10: fixed grid of EnergyBlocks blocks, each a partial sum (deterministic shape). */
+template<unsigned int D>
+__global__ void
+EnergyPartialKernel(GridParams      g,
+                    const int32_t * labels,
+                    const float *   density,
+                    const double *  centroid,
+                    double *        partial)
+{
+  double sum = 0.0;
+  for (int32_t p = blockIdx.x * blockDim.x + threadIdx.x; p < g.numberOfPixels; p += gridDim.x * blockDim.x)
+  {
+    int32_t idx[D];
+    double  x[D];
+    IndexOf<D>(g, p, idx);
+    PositionOf<D>(g, idx, x);
+    const double * r = &centroid[labels[p] * D];
+    double         d2 = 0.0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      d2 += (x[k] - r[k]) * (x[k] - r[k]);
+    }
+    sum += density[p] * d2;
+  }
+  using Reduce = cub::BlockReduce<double, Threads>;
+  __shared__ typename Reduce::TempStorage storage;
+  const double                            total = Reduce(storage).Sum(sum);
+  if (threadIdx.x == 0)
+  {
+    partial[blockIdx.x] = total;
+  }
+}
+
+__global__ void
+EnergyFinalKernel(const double * partial, int32_t n, double * energy)
+{
+  double sum = 0.0;
+  for (int32_t i = threadIdx.x; i < n; i += blockDim.x)
+  {
+    sum += partial[i];
+  }
+  using Reduce = cub::BlockReduce<double, Threads>;
+  __shared__ typename Reduce::TempStorage storage;
+  const double                            total = Reduce(storage).Sum(sum);
+  if (threadIdx.x == 0)
+  {
+    *energy = total;
+  }
+}
+
+} // namespace
+
+struct CVTSwapOptimizer::Impl
+{
+  unsigned int dimension{ 0 };
+  GridParams   grid{};
+  size_t       numberOfPixels{ 0 };
+  ColourParams colours[8]{};
+  unsigned int numberOfColours{ 0 };
+  int32_t      maxColourCount{ 0 };
+  int          strideBlocks{ 1 };
+  double       tolerance{ 0.0 };
+  // one non-blocking stream; a borrowed device input must be complete when it is passed
+  cudaStream_t stream{ nullptr };
+  SweepState * hostState{ nullptr }; // pinned: the per-sweep read-back
+
+  DeviceBuffer<float>            ownDensity;
+  const float *                  density{ nullptr };
+  DeviceBuffer<int32_t>          labels;
+  bool                           hasLabels{ false };
+  DeviceBuffer<uint32_t>         iota, sortedKeys, sortedPixels;
+  size_t                         nCells{ 0 };
+  DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
+  DeviceBuffer<int32_t>          counters, segment, touched, entries, cellStart, cellEnd;
+  DeviceBuffer<uint8_t>          flags;
+  DeviceBuffer<Proposal>         slots, proposals;
+  DeviceBuffer<uint32_t>         selected;
+  DeviceBuffer<SweepState>       state;
+  DeviceBuffer<StatisticsReport> report;
+  DeviceBuffer<uint8_t>          temp;
+  double                         energy{ 0.0 };
+
+  // one whole sweep (all colours) as a CUDA graph, replayed every sweep; rebuilt when what it captured changes
+  cudaGraphExec_t sweepGraph{ nullptr };
+  const void *    graphKey[5]{};
+  bool            graphUnavailable{ false };
+
+  Impl() = default;
+  Impl(const Impl &) = delete;
+  Impl &
+  operator=(const Impl &) = delete;
+  ~Impl()
+  {
+    DropGraph();
+    if (hostState)
+    {
+      cudaFreeHost(hostState);
+    }
+    if (stream)
+    {
+      cudaStreamDestroy(stream);
+    }
+  }
+
+  void
+  DropGraph() noexcept
+  {
+    if (sweepGraph)
+    {
+      cudaGraphExecDestroy(sweepGraph);
+      sweepGraph = nullptr;
+    }
+  }
+
+  void
+  RequireGrid() const
+  {
+    if (dimension != 2 && dimension != 3)
+    {
+      throw CudaError("CVTSwapOptimizer: SetGrid must be called first (dimension 2 or 3)");
+    }
+  }
+
+  void
+  RequireCells() const
+  {
+    RequireGrid();
+    if (!density)
+    {
+      throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
+    }
+    if (!hasLabels || nCells == 0)
+    {
+      throw CudaError("CVTSwapOptimizer: no labels (SetLabels)");
+    }
+  }
+
+  void
+  ReserveTemp(size_t bytes)
+  {
+    temp.Reserve(std::max<size_t>(bytes, 1));
+  }
+
+  void
+  Recompute(size_t numberOfCells)
+  {
+    if (dimension == 2)
+    {
+      RecomputeStatistics<2>(numberOfCells);
+    }
+    else
+    {
+      RecomputeStatistics<3>(numberOfCells);
+    }
+  }
+
+  /** Masses and centroids summed in pixel order (stable sort by label, one warp per cell), then the energy. */
+  template<unsigned int D>
+  void
+  RecomputeStatistics(size_t numberOfCells)
+  {
+    if (numberOfCells < 1 || numberOfCells > numberOfPixels)
+    {
+      std::ostringstream os;
+      os << "CVTSwapOptimizer: cannot have " << numberOfCells << " cells on " << numberOfPixels << " pixels";
+      throw CudaError(os.str());
+    }
+    const int32_t n = static_cast<int32_t>(numberOfPixels);
+    const int32_t cells = static_cast<int32_t>(numberOfCells);
+    if (numberOfCells != nCells)
+    {
+      nCells = numberOfCells;
+      mass.Resize(nCells);
+      centroid.Resize(nCells * D);
+      deltaMass.Resize(nCells);
+      deltaMoment.Resize(nCells * D);
+      term.Resize(nCells);
+      counters.Resize(2 * nCells);
+      segment.Resize(nCells);
+      touched.Resize(nCells);
+      cellStart.Resize(nCells);
+      cellEnd.Resize(nCells);
+    }
+    report.Resize(1);
+    Check(cudaMemsetAsync(report.Data(), 0xFF, sizeof(StatisticsReport), stream), "cudaMemset");
+    ValidateKernel<<<strideBlocks, Threads, 0, stream>>>(labels.Data(), n, cells, report.Data());
+    CheckLaunch("ValidateKernel");
+    StatisticsReport r{};
+    report.Download(&r, 1, stream);
+    if (r.badPixel != std::numeric_limits<unsigned long long>::max())
+    {
+      int32_t l = 0;
+      Check(cudaMemcpyAsync(&l, labels.Data() + r.badPixel, sizeof(l), cudaMemcpyDeviceToHost, stream), "download");
+      Check(cudaStreamSynchronize(stream), "download (synchronise)");
+      std::ostringstream os;
+      os << "CVTSwapOptimizer: label " << l << " at pixel " << r.badPixel << " is outside [0, " << numberOfCells << ")";
+      throw CudaError(os.str());
+    }
+    int endBit = 1;
+    while (endBit < 31 && (size_t{ 1 } << endBit) < numberOfCells)
+    {
+      ++endBit;
+    }
+    const auto * keys = reinterpret_cast<const uint32_t *>(labels.Data());
+    size_t       sortBytes = 0;
+    Check(cub::DeviceRadixSort::SortPairs(
+            nullptr, sortBytes, keys, sortedKeys.Data(), iota.Data(), sortedPixels.Data(), n, 0, endBit, stream),
+          "cub::DeviceRadixSort::SortPairs");
+    ReserveTemp(sortBytes);
+    sortBytes = temp.Size();
+    Check(cub::DeviceRadixSort::SortPairs(
+            temp.Data(), sortBytes, keys, sortedKeys.Data(), iota.Data(), sortedPixels.Data(), n, 0, endBit, stream),
+          "cub::DeviceRadixSort::SortPairs");
+    cellStart.Zero(stream);
+    cellEnd.Zero(stream);
+    CellRangeKernel<<<strideBlocks, Threads, 0, stream>>>(sortedKeys.Data(), n, cellStart.Data(), cellEnd.Data());
+    CheckLaunch("CellRangeKernel");
+    CellStatisticsKernel<D><<<Blocks(nCells * 32, Threads), Threads, 0, stream>>>(grid,
+                                                                                  sortedPixels.Data(),
+                                                                                  cellStart.Data(),
+                                                                                  cellEnd.Data(),
+                                                                                  density,
+                                                                                  cells,
+                                                                                  mass.Data(),
+                                                                                  centroid.Data(),
+                                                                                  report.Data());
+    CheckLaunch("CellStatisticsKernel");
+    report.Download(&r, 1, stream);
+    if (r.badCell != std::numeric_limits<unsigned long long>::max())
+    {
+      std::ostringstream os;
+      os << "CVTSwapOptimizer: cell " << r.badCell << " is empty or has zero mass";
+      throw CudaError(os.str());
+    }
+    energy = ComputeEnergy<D>();
+  }
+
+  template<unsigned int D>
+  double
+  ComputeEnergy()
+  {
+    partial.Resize(EnergyBlocks + 1);
+    EnergyPartialKernel<D>
+      <<<EnergyBlocks, Threads, 0, stream>>>(grid, labels.Data(), density, centroid.Data(), partial.Data());
+    CheckLaunch("EnergyPartialKernel");
+    EnergyFinalKernel<<<1, Threads, 0, stream>>>(partial.Data(), EnergyBlocks, partial.Data() + EnergyBlocks);
+    CheckLaunch("EnergyFinalKernel");
+    double e = 0.0;
+    Check(cudaMemcpyAsync(&e, partial.Data() + EnergyBlocks, sizeof(e), cudaMemcpyDeviceToHost, stream), "download");
+    Check(cudaStreamSynchronize(stream), "download (synchronise)");
+    return e;
+  }
+
+  /** Propose + select for one colour; the count lands in state->numberOfProposals. */
+  template<unsigned int D>
+  void
+  EnqueuePropose(const ColourParams & cp)
+  {
+    ProposeKernel<D><<<Blocks(static_cast<size_t>(std::max(cp.count, 1)), Threads), Threads, 0, stream>>>(
+      grid,
+      cp,
+      labels.Data(),
+      density,
+      mass.Data(),
+      centroid.Data(),
+      tolerance,
+      state.Data(),
+      flags.Data(),
+      slots.Data(),
+      counters.Data(),
+      static_cast<int32_t>(nCells));
+    CheckLaunch("ProposeKernel");
+    size_t bytes = temp.Size();
+    Check(cub::DeviceSelect::Flagged(temp.Data(),
+                                     bytes,
+                                     thrust::counting_iterator<uint32_t>(0),
+                                     flags.Data(),
+                                     selected.Data(),
+                                     &state.Data()->numberOfProposals,
+                                     cp.count,
+                                     stream),
+          "cub::DeviceSelect::Flagged");
+  }
+
+  /** Counts the proposals per cell (gathering them from the slots when fromSlots) and lists the touched cells. */
+  void
+  EnqueueCount(bool fromSlots)
+  {
+    CountKernel<<<strideBlocks, Threads, 0, stream>>>(state.Data(),
+                                                      fromSlots ? selected.Data() : nullptr,
+                                                      slots.Data(),
+                                                      proposals.Data(),
+                                                      counters.Data(),
+                                                      touched.Data());
+    CheckLaunch("CountKernel");
+  }
+
+  /** Joint change of the batch in state, and the decision. */
+  template<unsigned int D>
+  void
+  EnqueueJointChange(bool fromSlots, int32_t colour, bool haltOnReject)
+  {
+    EnqueueCount(fromSlots);
+    AllocateKernel<<<strideBlocks, Threads, 0, stream>>>(state.Data(), counters.Data(), touched.Data(), segment.Data());
+    CheckLaunch("AllocateKernel");
+    ScatterKernel<<<strideBlocks, Threads, 0, stream>>>(
+      state.Data(), proposals.Data(), segment.Data(), counters.Data() + nCells, entries.Data());
+    CheckLaunch("ScatterKernel");
+    CellKernel<D><<<strideBlocks, 64, 0, stream>>>(grid,
+                                                   state.Data(),
+                                                   proposals.Data(),
+                                                   density,
+                                                   mass.Data(),
+                                                   centroid.Data(),
+                                                   counters.Data(),
+                                                   touched.Data(),
+                                                   segment.Data(),
+                                                   entries.Data(),
+                                                   deltaMass.Data(),
+                                                   deltaMoment.Data(),
+                                                   term.Data());
+    CheckLaunch("CellKernel");
+    DecideKernel<<<1, Threads, 0, stream>>>(
+      state.Data(), counters.Data(), term.Data(), static_cast<int32_t>(nCells), colour, haltOnReject ? 1 : 0);
+    CheckLaunch("DecideKernel");
+  }
+
+  template<unsigned int D>
+  void
+  EnqueueCommit()
+  {
+    CommitKernel<D><<<strideBlocks, Threads, 0, stream>>>(state.Data(),
+                                                          proposals.Data(),
+                                                          touched.Data(),
+                                                          deltaMass.Data(),
+                                                          deltaMoment.Data(),
+                                                          labels.Data(),
+                                                          mass.Data(),
+                                                          centroid.Data());
+    CheckLaunch("CommitKernel");
+  }
+
+  /** The sub-sweeps of colours first..last of a sweep (from its start when first is 0), then the state's copy to
+   * the pinned host copy. */
+  template<unsigned int D>
+  void
+  EnqueueSweep(unsigned int first)
+  {
+    if (first == 0)
+    {
+      BeginSweepKernel<<<1, 1, 0, stream>>>(state.Data());
+      CheckLaunch("BeginSweepKernel");
+    }
+    for (unsigned int c = first; c < numberOfColours; ++c)
+    {
+      if (colours[c].count == 0)
+      {
+        continue;
+      }
+      EnqueuePropose<D>(colours[c]);
+      EnqueueJointChange<D>(true, static_cast<int32_t>(c), true);
+      EnqueueCommit<D>();
+    }
+    Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+          "download state");
+  }
+
+  SweepState
+  ReadState()
+  {
+    Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+          "download state");
+    Check(cudaStreamSynchronize(stream), "download state (synchronise)");
+    return *hostState;
+  }
+
+  void
+  WriteInt(int32_t * device, int32_t value)
+  {
+    Check(cudaMemcpyAsync(device, &value, sizeof(value), cudaMemcpyHostToDevice, stream), "upload");
+    Check(cudaStreamSynchronize(stream), "upload (synchronise)"); // value lives on this stack frame
+  }
+
+  /** A whole sweep from its start: the graph when it can be had (captured once, replayed), else direct launches. */
+  template<unsigned int D>
+  void
+  LaunchSweep()
+  {
+    const void * key[5] = {
+      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
+    };
+    if (sweepGraph && !std::equal(key, key + 5, graphKey))
+    {
+      DropGraph();
+    }
+    if (!sweepGraph && !graphUnavailable)
+    {
+      CaptureSweep<D>();
+      std::copy(key, key + 5, graphKey);
+    }
+    if (sweepGraph)
+    {
+      Check(cudaGraphLaunch(sweepGraph, stream), "cudaGraphLaunch");
+    }
+    else
+    {
+      EnqueueSweep<D>(0);
+    }
+  }
+
+  /** Captures EnqueueSweep(0) into sweepGraph; on failure the sweeps use direct launches from then on. */
+  template<unsigned int D>
+  void
+  CaptureSweep()
+  {
+    Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
+    Check(cudaStreamBeginCapture(stream, cudaStreamCaptureModeRelaxed), "cudaStreamBeginCapture");
+    cudaGraph_t graph = nullptr;
+    try
+    {
+      EnqueueSweep<D>(0);
+    }
+    catch (const CudaError &)
+    {
+      cudaStreamEndCapture(stream, &graph);
+      if (graph)
+      {
+        cudaGraphDestroy(graph);
+      }
+      cudaGetLastError();
+      graphUnavailable = true;
+      return;
+    }
+    if (cudaStreamEndCapture(stream, &graph) != cudaSuccess || !graph ||
+        cudaGraphInstantiate(&sweepGraph, graph, 0) != cudaSuccess)
+    {
+      sweepGraph = nullptr;
+      graphUnavailable = true;
+      cudaGetLastError();
+    }
+    if (graph)
+    {
+      cudaGraphDestroy(graph);
+    }
+  }
+
+  /** The rejected batch of colour cp, halved on the host like DiscreteCVT::CommitProposals (the first rejection
+   * is already counted). */
+  template<unsigned int D>
+  void
+  HalveBatch(const ColourParams & cp, CVTSwapResult & result)
+  {
+    WriteInt(&state.Data()->halted, 0);
+    EnqueuePropose<D>(cp); // the state is that of the rejected sub-sweep: same proposals
+    EnqueueCount(true);    // gathers them in pixel order
+    size_t count = static_cast<size_t>(ReadState().numberOfProposals);
+    if (count <= 1)
+    {
+      return;
+    }
+    std::vector<Proposal> host(count);
+    proposals.Download(host.data(), count, stream);
+    std::sort(host.begin(),
+              host.end(),
+              [](const Proposal & a, const Proposal & b)
+              { return a.gain != b.gain ? a.gain > b.gain : a.pixel < b.pixel; });
+    Check(cudaMemcpyAsync(proposals.Data(), host.data(), count * sizeof(Proposal), cudaMemcpyHostToDevice, stream),
+          "upload");
+    for (;;)
+    {
+      count /= 2;
+      WriteInt(&state.Data()->numberOfProposals, static_cast<int32_t>(count));
+      ResetBatchKernel<<<strideBlocks, Threads, 0, stream>>>(
+        state.Data(), counters.Data(), static_cast<int32_t>(nCells));
+      CheckLaunch("ResetBatchKernel");
+      EnqueueJointChange<D>(false, cp.colour, false);
+      if (ReadState().commit)
+      {
+        EnqueueCommit<D>();
+        return;
+      }
+      ++result.rejectedBatches;
+      if (count == 1)
+      {
+        return;
+      }
+    }
+  }
+
+  template<unsigned int D>
+  void
+  Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result)
+  {
+    RequireCells();
+    result = CVTSwapResult{};
+    result.energyBefore = energy;
+    *hostState = SweepState{};
+    hostState->energy = energy;
+    hostState->rejectedColour = -1;
+    Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
+    for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
+    {
+      const double before = energy;
+      LaunchSweep<D>();
+      for (;;)
+      {
+        Check(cudaStreamSynchronize(stream), "sweep (synchronise)");
+        const SweepState s = *hostState;
+        if (!s.halted)
+        {
+          break;
+        }
+        ++result.rejectedBatches;
+        HalveBatch<D>(colours[s.rejectedColour], result);
+        EnqueueSweep<D>(static_cast<unsigned int>(s.rejectedColour) + 1); // the rest of the sweep
+      }
+      const SweepState & s = *hostState;
+      energy = s.energy;
+      ++result.sweeps;
+      result.swaps += static_cast<size_t>(s.swaps);
+      if (s.swaps == 0 || before - energy <= epsilon * before)
+      {
+        break;
+      }
+    }
+    result.energyAfter = energy;
+  }
+};
+
+CVTSwapOptimizer::CVTSwapOptimizer()
+  : m_Impl(new Impl)
+{
+}
+
+CVTSwapOptimizer::~CVTSwapOptimizer() = default;
+
+Status
+CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const double * spacing)
+{
+  return Guard(
+    [&]
+    {
+      Impl & m = *m_Impl;
+      m.dimension = 0;
+      m.hasLabels = false;
+      m.density = nullptr;
+      m.nCells = 0;
+      m.DropGraph();
+      if (dimension != 2 && dimension != 3)
+      {
+        throw CudaError("CVTSwapOptimizer: the dimension must be 2 or 3");
+      }
+      size_t n = 1;
+      for (unsigned int k = 0; k < dimension; ++k)
+      {
+        if (size[k] < 1 || !(spacing[k] > 0.0))
+        {
+          throw CudaError("CVTSwapOptimizer: every size must be >= 1 and every spacing > 0");
+        }
+        n *= size[k];
+        if (n >= (size_t{ 1 } << 31))
+        {
+          throw CudaError("CVTSwapOptimizer: the grid must have fewer than 2^31 pixels");
+        }
+      }
+      GridParams g{};
+      int32_t    stride = 1;
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        g.size[k] = k < dimension ? static_cast<int32_t>(size[k]) : 1;
+        g.spacing[k] = k < dimension ? spacing[k] : 1.0;
+        g.stride[k] = stride;
+        stride *= g.size[k];
+      }
+      g.numberOfPixels = static_cast<int32_t>(n);
+      m.grid = g;
+      m.numberOfPixels = n;
+      m.numberOfColours = 1u << dimension;
+      m.maxColourCount = 0;
+      for (unsigned int c = 0; c < m.numberOfColours; ++c)
+      {
+        ColourParams cp{};
+        cp.colour = static_cast<int32_t>(c);
+        cp.count = 1;
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          cp.origin[k] = k < dimension ? static_cast<int32_t>((c >> k) & 1u) : 0;
+          cp.sub[k] = g.size[k] > cp.origin[k] ? (g.size[k] - cp.origin[k] + 1) / 2 : 0;
+          cp.count *= k < dimension ? cp.sub[k] : 1;
+        }
+        m.colours[c] = cp;
+        m.maxColourCount = std::max(m.maxColourCount, cp.count);
+      }
+      int device = 0, sms = 1;
+      Check(cudaGetDevice(&device), "cudaGetDevice");
+      Check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device), "cudaDeviceGetAttribute");
+      m.strideBlocks = 2 * sms; // grid-stride kernels: their work is known on the device only
+      if (!m.stream)
+      {
+        Check(cudaStreamCreateWithFlags(&m.stream, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
+      }
+      if (!m.hostState)
+      {
+        void * pinned = nullptr;
+        Check(cudaMallocHost(&pinned, sizeof(SweepState)), "cudaMallocHost");
+        m.hostState = static_cast<SweepState *>(pinned);
+      }
+      // DiscreteCVT's rounding guard: 1e-9 x the smallest squared pixel size
+      double h2 = g.spacing[0] * g.spacing[0];
+      for (unsigned int k = 1; k < dimension; ++k)
+      {
+        h2 = std::min(h2, g.spacing[k] * g.spacing[k]);
+      }
+      m.tolerance = 1e-9 * h2;
+      m.labels.Resize(n);
+      m.iota.Resize(n);
+      m.sortedKeys.Resize(n);
+      m.sortedPixels.Resize(n);
+      const size_t slotsNeeded = static_cast<size_t>(std::max(m.maxColourCount, 1));
+      m.flags.Resize(slotsNeeded);
+      m.slots.Resize(slotsNeeded);
+      m.proposals.Resize(slotsNeeded);
+      m.selected.Resize(slotsNeeded);
+      m.entries.Resize(2 * slotsNeeded);
+      m.state.Resize(1);
+      IotaKernel<<<m.strideBlocks, Threads, 0, m.stream>>>(m.iota.Data(), static_cast<int32_t>(n));
+      CheckLaunch("IotaKernel");
+      size_t selectBytes = 0;
+      Check(cub::DeviceSelect::Flagged(nullptr,
+                                       selectBytes,
+                                       thrust::counting_iterator<uint32_t>(0),
+                                       m.flags.Data(),
+                                       m.selected.Data(),
+                                       &m.state.Data()->numberOfProposals,
+                                       static_cast<int32_t>(slotsNeeded),
+                                       m.stream),
+            "cub::DeviceSelect::Flagged");
+      m.ReserveTemp(selectBytes);
+      Check(cudaStreamSynchronize(m.stream), "SetGrid (synchronise)");
+      m.dimension = dimension;
+    });
+}
+
+Status
+CVTSwapOptimizer::SetDensity(const float * density, bool devicePointer)
+{
+  return Guard(
+    [&]
+    {
+      Impl & m = *m_Impl;
+      m.RequireGrid();
+      if (!density)
+      {
+        throw CudaError("CVTSwapOptimizer: null density");
+      }
+      if (devicePointer)
+      {
+        m.ownDensity.Free();
+        m.density = density;
+      }
+      else
+      {
+        m.ownDensity.Upload(density, m.numberOfPixels, m.stream);
+        Check(cudaStreamSynchronize(m.stream), "upload (synchronise)");
+        m.density = m.ownDensity.Data();
+      }
+    });
+}
+
+Status
+CVTSwapOptimizer::SetLabels(const int32_t * labels, size_t numberOfCells, bool devicePointer)
+{
+  return Guard(
+    [&]
+    {
+      Impl & m = *m_Impl;
+      m.RequireGrid();
+      if (!labels)
+      {
+        throw CudaError("CVTSwapOptimizer: null labels");
+      }
+      m.hasLabels = false;
+      Check(cudaMemcpyAsync(m.labels.Data(),
+                            labels,
+                            m.numberOfPixels * sizeof(int32_t),
+                            devicePointer ? cudaMemcpyDeviceToDevice : cudaMemcpyHostToDevice,
+                            m.stream),
+            "upload labels");
+      Check(cudaStreamSynchronize(m.stream), "upload labels (synchronise)");
+      m.hasLabels = true;
+      try
+      {
+        m.Recompute(numberOfCells);
+      }
+      catch (...)
+      {
+        m.hasLabels = false; // the copied labels are invalid
+        throw;
+      }
+    });
+}
+
+Status
+CVTSwapOptimizer::KeepLabels(size_t numberOfCells)
+{
+  return Guard(
+    [&]
+    {
+      Impl & m = *m_Impl;
+      m.RequireGrid();
+      if (!m.hasLabels)
+      {
+        throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
+      }
+      if (!m.density)
+      {
+        throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
+      }
+      m.Recompute(numberOfCells);
+    });
+}
+
+Status
+CVTSwapOptimizer::Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result)
+{
+  return Guard(
+    [&]
+    {
+      Impl & m = *m_Impl;
+      m.RequireCells();
+      if (m.dimension == 2)
+      {
+        m.Optimize<2>(epsilon, maximumNumberOfSweeps, result);
+      }
+      else
+      {
+        m.Optimize<3>(epsilon, maximumNumberOfSweeps, result);
+      }
+    });
+}
+
+Status
+CVTSwapOptimizer::DownloadLabels(int32_t * host) const
+{
+  return Guard(
+    [&]
+    {
+      const Impl & m = *m_Impl;
+      m.RequireGrid();
+      if (!m.hasLabels)
+      {
+        throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
+      }
+      m.labels.Download(host, m.numberOfPixels, m.stream);
+    });
+}
+
+const int32_t *
+CVTSwapOptimizer::DeviceLabels() const
+{
+  return m_Impl->dimension ? m_Impl->labels.Data() : nullptr;
+}
+
+Status
+CVTSwapOptimizer::GetCells(std::vector<double> & masses, std::vector<double> & centroids) const
+{
+  return Guard(
+    [&]
+    {
+      const Impl & m = *m_Impl;
+      m.RequireCells();
+      masses.resize(m.nCells);
+      centroids.resize(m.nCells * m.dimension);
+      m.mass.Download(masses.data(), m.nCells, m.stream);
+      m.centroid.Download(centroids.data(), m.nCells * m.dimension, m.stream);
+    });
+}
+
+double
+CVTSwapOptimizer::Energy() const
+{
+  return m_Impl->energy;
+}
+
+size_t
+CVTSwapOptimizer::NumberOfCells() const
+{
+  return m_Impl->hasLabels ? m_Impl->nCells : 0;
+}
+} // namespace cuda
+} // namespace dmr
+} // namespace itk
