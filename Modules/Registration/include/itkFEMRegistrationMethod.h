@@ -186,14 +186,15 @@ public:
   {
     return *m_CurrentMesh;
   }
-  /** The CVT labels of the current iteration (dynamic mode, in an IterationEvent observer; nullptr otherwise and
-   * after the run, which frees them). */
+  /** The CVT labels of the current iteration (dynamic mode on the CPU back-end, in an IterationEvent observer;
+   * nullptr otherwise, after the run, which frees them, and on the CUDA back-end, which keeps them on the device). */
   const LabelImageType *
   GetCurrentLabels() const
   {
     return m_Labels.GetPointer();
   }
-  /** Current density (valid in an IterationEvent observer). */
+  /** Current density (valid in an IterationEvent observer on the CPU back-end; the CUDA back-end keeps it on the
+   * device and leaves this image empty). */
   const DensityImageType *
   GetCurrentDensity() const
   {
@@ -264,6 +265,7 @@ private:
   typename SolverType::Pointer         m_Solver;
   typename LabelImageType::Pointer     m_Labels;
   SimplexMeshType                      m_StaticSimplexMesh;
+  SimplexMeshType                      m_DynamicSimplexMesh; // the CUDA path builds the dual mesh itself
   const SimplexMeshType *              m_CurrentMesh{ nullptr };
   typename MeshType::Pointer           m_CurrentItkMesh;
   size_t                               m_CurrentMeshVersion{ 0 };

@@ -22,6 +22,9 @@
 #include "itkImageRegionConstIterator.h"
 #include "dmrCudaBackend.h"
 #include "dmrRegistrationBackend.h"
+#include "dmrCVTBackend.h"
+#include "dmrDualMeshBackend.h"
+#include "dmrDualMeshBuilder.h"
 #include "dmrImageMetrics.h"
 #include <chrono>
 
@@ -544,7 +547,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   m_CVTFilter->SetEpsilon(m_CVTEpsilon);
   m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
   m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  m_CVTFilter->SetBackend(BackendEnum::CPU); // the swap optimiser reads the host density below
+  m_CVTFilter->SetBackend(m_Backend);
   m_Solver->SetLambda(m_Lambda);
   m_Solver->SetMu(m_Mu);
   m_Labels = nullptr;
@@ -553,8 +556,11 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   m_CurrentMesh = nullptr;
   ++m_CurrentMeshVersion;
   std::vector<double> nodalForce, nodalU, nodalW;
-  // host copy of the density, read by the CPU stages of the dynamic mesh
+  // host copy of the density for the initial contraction (CPU), then released
   typename DensityImageType::Pointer density;
+  dmr::cuda::CVTSwapOptimizer        cvt;
+  dmr::cuda::LabelSummarizer         summarizer;
+  dmr::LabelSummary                  summary;
 
   if (m_MeshMode != MeshModeEnum::Dynamic)
   {
@@ -612,40 +618,60 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.AddToDensity(alpha), "density");
     m_Timing.registration += seconds(t0, Clock::now());
 
-    // 2. dynamic mesh
+    // 2. dynamic mesh: the swap optimisation reads the device density and keeps the labels on the device; the dual
+    // mesh is built on the CPU from their small summary (counts, sums, adjacency)
     if (m_MeshMode == MeshModeEnum::Dynamic)
     {
-      t0 = Clock::now();
-      if (density.IsNull())
-      {
-        density = DensityImageType::New();
-        density->CopyInformation(fixed);
-        density->SetRegions(fixed->GetLargestPossibleRegion());
-        density->Allocate();
-      }
-      dmr::ThrowOnError(context.DownloadDensity(density->GetBufferPointer()), "density download");
-      density->Modified();
-      m_Timing.tessellationOptimization += seconds(t0, Clock::now());
-      m_CVTFilter->SetInput(density);
       const bool reinitialize =
         m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
-      m_CVTFilter->SetInitialLabels(m_Labels && !reinitialize ? m_Labels.GetPointer() : nullptr);
-      m_CVTFilter->Update();
-      m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
-      m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
-      record.sweeps = m_CVTFilter->GetNumberOfSweeps();
-      typename LabelImageType::Pointer labels = m_CVTFilter->GetOutput();
-      labels->DisconnectPipeline();
-      m_Labels = labels;
-      auto sites = CVTFilterType::SitesType::New();
-      sites->SetPoints(m_CVTFilter->GetSites()->GetPoints());
+      if (it == 1 || reinitialize)
+      {
+        // initial tessellation (contraction) on the CPU: the one full-volume download of the density
+        t0 = Clock::now();
+        if (density.IsNull())
+        {
+          density = DensityImageType::New();
+          density->CopyInformation(fixed);
+          density->SetRegions(fixed->GetLargestPossibleRegion());
+          density->Allocate();
+        }
+        dmr::ThrowOnError(context.DownloadDensity(density->GetBufferPointer()), "density download");
+        density->Modified();
+        m_CVTFilter->SetInput(density);
+        m_CVTFilter->SetInitialLabels(nullptr);
+        m_CVTFilter->Update(); // contraction on the CPU, its swap optimisation on the GPU (Backend Auto/CUDA)
+        m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
+        m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
+        record.sweeps = m_CVTFilter->GetNumberOfSweeps();
+        const auto * labels = m_CVTFilter->GetOutput();
+        dmr::ThrowOnError(cvt.SetGrid(D, grid.size.data(), grid.spacing.data()), "CVT grid");
+        dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
+        dmr::ThrowOnError(cvt.SetLabels(labels->GetBufferPointer(), m_NumberOfNodes, false), "CVT labels");
+        m_CVTFilter->GetOutput()->ReleaseData();
+        density = nullptr;
+        m_Timing.tessellationOptimization +=
+          std::max(0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime() -
+                          m_CVTFilter->GetOptimizationTime());
+      }
+      else
+      {
+        t0 = Clock::now();
+        dmr::cuda::CVTSwapResult result;
+        dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
+        dmr::ThrowOnError(cvt.KeepLabels(m_NumberOfNodes), "CVT warm start");
+        dmr::ThrowOnError(cvt.Optimize(m_CVTEpsilon, m_MaximumNumberOfSweeps, result), "CVT optimisation");
+        record.sweeps = result.sweeps;
+        m_Timing.tessellationOptimization += seconds(t0, Clock::now());
+      }
 
       t0 = Clock::now();
-      m_DualMeshFilter->SetInput(m_Labels);
-      m_DualMeshFilter->SetSites(sites);
-      m_DualMeshFilter->Modified();
-      m_DualMeshFilter->Update();
-      m_CurrentMesh = &m_DualMeshFilter->GetSimplexMesh();
+      std::vector<double> masses, centroids;
+      dmr::ThrowOnError(cvt.GetCells(masses, centroids), "CVT sites");
+      dmr::ThrowOnError(summarizer.Summarize(D, grid.size.data(), cvt.DeviceLabels(), m_NumberOfNodes, summary),
+                        "label summary");
+      m_DynamicSimplexMesh =
+        dmr::BuildDualMesh<D>(grid, summary, centroids.data(), m_DualMeshFilter->GetSnapToBoxEdges(), nullptr);
+      m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
 
