@@ -255,6 +255,49 @@ TEST(LinearElasticFEMSolver, PatchTestsOnARegularMesh3D)
   CheckPatchTests<3>(itk::dmr::MakeRegularMesh<3>(grid, { 5, 4, 4 }));
 }
 
+/** The compressed assembly equals the sum of the element matrices assembled from triplets, entry for entry (the same
+ * additions in the same element order), and solving it reproduces K u = f on the free nodes. */
+template <unsigned int D>
+void
+CheckAssemblyAgainstTriplets(const itk::dmr::SimplexMesh<D> & mesh)
+{
+  const auto             solver = MakeSolver<D>(mesh);
+  constexpr unsigned int NV = D + 1;
+  std::vector<Eigen::Triplet<double>> triplets;
+  double                              Ke[NV * D * NV * D];
+  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  {
+    solver->ElementStiffness(mesh, e, Ke);
+    for (unsigned int a = 0; a < NV; ++a)
+      for (unsigned int i = 0; i < D; ++i)
+        for (unsigned int b = 0; b < NV; ++b)
+          for (unsigned int j = 0; j < D; ++j)
+            triplets.emplace_back(mesh.elements[e][a] * D + i, mesh.elements[e][b] * D + j,
+                                  Ke[(a * D + i) * NV * D + b * D + j]);
+  }
+  Eigen::SparseMatrix<double> reference(mesh.NumberOfNodes() * D, mesh.NumberOfNodes() * D);
+  reference.setFromTriplets(triplets.begin(), triplets.end());
+  const auto & K = solver->GetStiffnessMatrix();
+  ASSERT_EQ(K.nonZeros(), reference.nonZeros());
+  ASSERT_EQ(K.rows(), reference.rows());
+  size_t differ = 0;
+  for (Eigen::Index c = 0; c < reference.outerSize(); ++c)
+  {
+    for (Eigen::SparseMatrix<double>::InnerIterator it(reference, c); it; ++it)
+    {
+      differ += K.coeff(it.row(), it.col()) != it.value() ? 1 : 0;
+    }
+  }
+  EXPECT_EQ(differ, 0u);
+}
+
+TEST(LinearElasticFEMSolver, CompressedAssemblyEqualsTripletAssembly)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 10, 9, 8 }, std::array<double, 3>{ 1.0, 1.2, 0.9 });
+  CheckAssemblyAgainstTriplets<3>(itk::dmr::MakeRegularMesh<3>(grid, { 5, 4, 4 }));
+  CheckAssemblyAgainstTriplets<2>(itk::dmr::test::MakeDualMeshPhantom().GetMesh());
+}
+
 TEST(LinearElasticFEMSolver, ElementStiffnessOfTheReferenceTriangle)
 {
   // unit right triangle, lambda = 0, mu = 1: K = |T| (grad phi_a . grad phi_b I + grad phi_b grad phi_a^T)

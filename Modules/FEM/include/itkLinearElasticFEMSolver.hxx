@@ -19,6 +19,7 @@
 #define itkLinearElasticFEMSolver_hxx
 
 #include "itkLinearElasticFEMSolver.h"
+#include <algorithm>
 
 namespace itk
 {
@@ -70,35 +71,108 @@ void
 LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
 {
   constexpr unsigned int NV = D + 1;
-  const size_t           nDof = mesh.NumberOfNodes() * D;
-  std::vector<Eigen::Triplet<double>> triplets;
-  triplets.reserve(mesh.elements.size() * NV * NV * D * D);
-  double Ke[NV * D * NV * D];
-  for (size_t e = 0; e < mesh.elements.size(); ++e)
+  const size_t           nNodes = mesh.NumberOfNodes();
+  const size_t           nDof = nNodes * D;
+  const size_t           nElements = mesh.elements.size();
+  // Direct compressed assembly (the mesh changes every iteration, so this runs every iteration): the node adjacency
+  // pattern from the elements, then every element's block added at its place, in element order (the same sums, in
+  // the same order, as assembling from triplets). K is stored column by column; entry (row (a,i), column (b,j)) of
+  // element e is added to column (b,j).
+  std::vector<int64_t> incidenceStart(nNodes + 1, 0), incidence(nElements * NV);
+  for (size_t e = 0; e < nElements; ++e)
   {
-    ElementStiffness(mesh, e, Ke);
     for (unsigned int a = 0; a < NV; ++a)
     {
-      for (unsigned int i = 0; i < D; ++i)
+      ++incidenceStart[mesh.elements[e][a] + 1];
+    }
+  }
+  for (size_t a = 0; a < nNodes; ++a)
+  {
+    incidenceStart[a + 1] += incidenceStart[a];
+  }
+  {
+    std::vector<int64_t> fill(incidenceStart.begin(), incidenceStart.end() - 1);
+    for (size_t e = 0; e < nElements; ++e)
+    {
+      for (unsigned int a = 0; a < NV; ++a)
       {
-        for (unsigned int b = 0; b < NV; ++b)
+        incidence[fill[mesh.elements[e][a]]++] = static_cast<int64_t>(e);
+      }
+    }
+  }
+  // neighbours of every node (itself included), sorted: the block pattern of its column
+  std::vector<int64_t> patternStart(nNodes + 1, 0), pattern;
+  pattern.reserve(nElements * NV * 2);
+  std::vector<int64_t> scratch;
+  for (size_t b = 0; b < nNodes; ++b)
+  {
+    scratch.clear();
+    for (int64_t k = incidenceStart[b]; k < incidenceStart[b + 1]; ++k)
+    {
+      for (unsigned int v = 0; v < NV; ++v)
+      {
+        scratch.push_back(static_cast<int64_t>(mesh.elements[incidence[k]][v]));
+      }
+    }
+    std::sort(scratch.begin(), scratch.end());
+    scratch.erase(std::unique(scratch.begin(), scratch.end()), scratch.end());
+    pattern.insert(pattern.end(), scratch.begin(), scratch.end());
+    patternStart[b + 1] = static_cast<int64_t>(pattern.size());
+  }
+  const size_t nnz = pattern.size() * D * D;
+  m_K.resize(static_cast<Eigen::Index>(nDof), static_cast<Eigen::Index>(nDof));
+  m_K.resizeNonZeros(static_cast<Eigen::Index>(nnz));
+  auto * outer = m_K.outerIndexPtr();
+  auto * inner = m_K.innerIndexPtr();
+  auto * value = m_K.valuePtr();
+  outer[0] = 0;
+  for (size_t b = 0; b < nNodes; ++b)
+  {
+    const int64_t blocks = patternStart[b + 1] - patternStart[b];
+    for (unsigned int j = 0; j < D; ++j)
+    {
+      const size_t column = b * D + j;
+      const auto   first = outer[column];
+      outer[column + 1] = first + static_cast<typename SparseMatrixType::StorageIndex>(blocks * D);
+      for (int64_t q = 0; q < blocks; ++q)
+      {
+        for (unsigned int i = 0; i < D; ++i)
         {
-          for (unsigned int j = 0; j < D; ++j)
+          inner[first + q * D + i] =
+            static_cast<typename SparseMatrixType::StorageIndex>(pattern[patternStart[b] + q] * D + i);
+        }
+      }
+    }
+  }
+  std::fill(value, value + nnz, 0.0);
+  double Ke[NV * D * NV * D];
+  for (size_t e = 0; e < nElements; ++e)
+  {
+    ElementStiffness(mesh, e, Ke);
+    for (unsigned int b = 0; b < NV; ++b)
+    {
+      const int64_t nb = static_cast<int64_t>(mesh.elements[e][b]);
+      for (unsigned int a = 0; a < NV; ++a)
+      {
+        const int64_t na = static_cast<int64_t>(mesh.elements[e][a]);
+        const int64_t q = std::lower_bound(pattern.begin() + patternStart[nb], pattern.begin() + patternStart[nb + 1], na) -
+                          (pattern.begin() + patternStart[nb]);
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          double * column = value + outer[nb * D + j] + q * D;
+          for (unsigned int i = 0; i < D; ++i)
           {
-            triplets.emplace_back(mesh.elements[e][a] * D + i, mesh.elements[e][b] * D + j,
-                                  Ke[(a * D + i) * NV * D + b * D + j]);
+            column[i] += Ke[(a * D + i) * NV * D + b * D + j];
           }
         }
       }
     }
   }
-  m_K.resize(static_cast<Eigen::Index>(nDof), static_cast<Eigen::Index>(nDof));
-  m_K.setFromTriplets(triplets.begin(), triplets.end());
 
   m_FreeIndex.assign(nDof, -1);
   int64_t nFree = 0;
   m_NumberOfFreeNodes = 0;
-  for (size_t i = 0; i < mesh.NumberOfNodes(); ++i)
+  for (size_t i = 0; i < nNodes; ++i)
   {
     if (mesh.fixed.empty() || !mesh.fixed[i])
     {
@@ -109,21 +183,43 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
       }
     }
   }
-  std::vector<Eigen::Triplet<double>> reduced;
-  reduced.reserve(static_cast<size_t>(m_K.nonZeros()));
-  for (Eigen::Index c = 0; c < m_K.outerSize(); ++c)
+  // the free rows and columns, in order (the free numbering is increasing, so columns stay sorted)
+  size_t freeNonZeros = 0;
+  for (size_t c = 0; c < nDof; ++c)
   {
-    for (SparseMatrixType::InnerIterator it(m_K, c); it; ++it)
+    if (m_FreeIndex[c] >= 0)
     {
-      const int64_t r = m_FreeIndex[it.row()], cc = m_FreeIndex[it.col()];
-      if (r >= 0 && cc >= 0)
+      for (auto k = outer[c]; k < outer[c + 1]; ++k)
       {
-        reduced.emplace_back(r, cc, it.value());
+        freeNonZeros += m_FreeIndex[inner[k]] >= 0 ? 1 : 0;
       }
     }
   }
   m_Kf.resize(nFree, nFree);
-  m_Kf.setFromTriplets(reduced.begin(), reduced.end());
+  m_Kf.resizeNonZeros(static_cast<Eigen::Index>(freeNonZeros));
+  auto * fOuter = m_Kf.outerIndexPtr();
+  auto * fInner = m_Kf.innerIndexPtr();
+  auto * fValue = m_Kf.valuePtr();
+  typename SparseMatrixType::StorageIndex position = 0;
+  fOuter[0] = 0;
+  for (size_t c = 0; c < nDof; ++c)
+  {
+    if (m_FreeIndex[c] < 0)
+    {
+      continue;
+    }
+    for (auto k = outer[c]; k < outer[c + 1]; ++k)
+    {
+      const int64_t r = m_FreeIndex[inner[k]];
+      if (r >= 0)
+      {
+        fInner[position] = static_cast<typename SparseMatrixType::StorageIndex>(r);
+        fValue[position] = value[k];
+        ++position;
+      }
+    }
+    fOuter[m_FreeIndex[c] + 1] = position;
+  }
   m_Factor.reset();
   m_CG.reset(new ConjugateGradientType());
   if (nFree > 0)

@@ -110,6 +110,7 @@ public:
     double meshConstruction{ 0 };
     double barycentric{ 0 };
     double registration{ 0 };
+    double femSolve{ 0 }; // part of registration: stiffness assembly and solves (CPU)
     double total{ 0 };
   };
 

@@ -264,7 +264,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     bary.Build(grid, m_StaticSimplexMesh, threader); // throws when the static mesh does not cover the image
     m_Timing.barycentric += seconds(t0, Clock::now());
     t0 = Clock::now();
+    const auto tSolve0 = Clock::now();
     m_Solver->SetMesh(m_StaticSimplexMesh);
+    m_Timing.femSolve += seconds(tSolve0, Clock::now());
     m_Timing.registration += seconds(t0, Clock::now());
   }
 
@@ -318,7 +320,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       bary.Build(grid, *m_CurrentMesh, threader);
       m_Timing.barycentric += seconds(t0, Clock::now());
       t0 = Clock::now();
+      const auto tSolve0 = Clock::now();
       m_Solver->SetMesh(*m_CurrentMesh);
+      m_Timing.femSolve += seconds(tSolve0, Clock::now());
       m_Timing.registration += seconds(t0, Clock::now());
     }
     record.nodes = m_CurrentMesh->NumberOfNodes();
@@ -326,7 +330,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     // 3-5. nodal forces, solve, beta, interpolate, exponential update
     t0 = Clock::now();
     bary.Gather(m_DensityFilter->GetGridForce().data(), dV, nodalForce, threader);
+    const auto tSolve = Clock::now();
     m_Solver->Solve(nodalForce, nodalU);
+    m_Timing.femSolve += seconds(tSolve, Clock::now());
     double fKf = 0.0;
     for (size_t i = 0; i < nodalU.size(); ++i)
     {
@@ -589,7 +595,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     this->UploadMesh(context, m_StaticSimplexMesh);
     m_Timing.barycentric += seconds(t0, Clock::now());
     t0 = Clock::now();
+    const auto tSolve0 = Clock::now();
     m_Solver->SetMesh(m_StaticSimplexMesh);
+    m_Timing.femSolve += seconds(tSolve0, Clock::now());
     m_Timing.registration += seconds(t0, Clock::now());
   }
 
@@ -679,7 +687,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       this->UploadMesh(context, *m_CurrentMesh);
       m_Timing.barycentric += seconds(t0, Clock::now());
       t0 = Clock::now();
+      const auto tSolve0 = Clock::now();
       m_Solver->SetMesh(*m_CurrentMesh);
+      m_Timing.femSolve += seconds(tSolve0, Clock::now());
       m_Timing.registration += seconds(t0, Clock::now());
     }
     record.nodes = m_CurrentMesh->NumberOfNodes();
@@ -689,7 +699,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     const SimplexMeshType & mesh = *m_CurrentMesh;
     nodalForce.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.GatherForce(dV, nodalForce.data()), "force gathering");
+    const auto tSolve = Clock::now();
     m_Solver->Solve(nodalForce, nodalU);
+    m_Timing.femSolve += seconds(tSolve, Clock::now());
     double fKf = 0.0;
     for (size_t i = 0; i < nodalU.size(); ++i)
     {
