@@ -231,6 +231,9 @@ private:
   WriteGridFieldToImage(const std::vector<float> & grid, DisplacementFieldType * image) const;
   void
   MakeTransformOutput();
+  /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
+  void
+  BuildStaticMesh();
   /** The iteration loop with every per-pixel stage on the GPU (BackendUsed CUDA). */
   void
   GenerateDataCUDA(std::chrono::steady_clock::time_point tStart);

@@ -239,27 +239,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
   if (m_MeshMode != MeshModeEnum::Dynamic)
   {
+    this->BuildStaticMesh();
     auto t0 = Clock::now();
-    if (m_MeshMode == MeshModeEnum::Regular)
-    {
-      unsigned int perAxis = m_RegularGridSize;
-      if (perAxis == 0)
-      {
-        perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
-      }
-      std::array<size_t, D> nodes;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
-      }
-      m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
-    }
-    else
-    {
-      m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), fixed);
-    }
-    m_CurrentMesh = &m_StaticSimplexMesh;
-    m_Timing.meshConstruction += seconds(t0, Clock::now());
     t0 = Clock::now();
     bary.Build(grid, m_StaticSimplexMesh, threader); // throws when the static mesh does not cover the image
     m_Timing.barycentric += seconds(t0, Clock::now());
@@ -397,6 +378,35 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::BuildStaticMesh()
+{
+  constexpr unsigned int D = ImageDimension;
+  const auto             t0 = std::chrono::steady_clock::now();
+  const auto             grid = dmr::Grid<D>::FromImage(this->GetFixedImage());
+  if (m_MeshMode == MeshModeEnum::Regular)
+  {
+    unsigned int perAxis = m_RegularGridSize;
+    if (perAxis == 0)
+    {
+      perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
+    }
+    std::array<size_t, D> nodes;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
+    }
+    m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
+  }
+  else
+  {
+    m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), this->GetFixedImage());
+  }
+  m_CurrentMesh = &m_StaticSimplexMesh;
+  m_Timing.meshConstruction += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 template <typename TF, typename TM, typename TD>
@@ -570,27 +580,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
 
   if (m_MeshMode != MeshModeEnum::Dynamic)
   {
+    this->BuildStaticMesh();
     t0 = Clock::now();
-    if (m_MeshMode == MeshModeEnum::Regular)
-    {
-      unsigned int perAxis = m_RegularGridSize;
-      if (perAxis == 0)
-      {
-        perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
-      }
-      std::array<size_t, D> nodes;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
-      }
-      m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
-    }
-    else
-    {
-      m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), fixed);
-    }
-    m_CurrentMesh = &m_StaticSimplexMesh;
-    m_Timing.meshConstruction += seconds(t0, Clock::now());
     t0 = Clock::now();
     this->UploadMesh(context, m_StaticSimplexMesh);
     m_Timing.barycentric += seconds(t0, Clock::now());
