@@ -234,6 +234,9 @@ private:
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
   void
   BuildStaticMesh();
+  /** Assembles the stiffness of a new mesh (timed as FEM solve, part of registration). */
+  void
+  SetSolverMesh(const SimplexMeshType & mesh);
   /** The iteration loop with every per-pixel stage on the GPU (BackendUsed CUDA). */
   void
   GenerateDataCUDA(std::chrono::steady_clock::time_point tStart);

@@ -244,11 +244,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     t0 = Clock::now();
     bary.Build(grid, m_StaticSimplexMesh, threader); // throws when the static mesh does not cover the image
     m_Timing.barycentric += seconds(t0, Clock::now());
-    t0 = Clock::now();
-    const auto tSolve0 = Clock::now();
-    m_Solver->SetMesh(m_StaticSimplexMesh);
-    m_Timing.femSolve += seconds(tSolve0, Clock::now());
-    m_Timing.registration += seconds(t0, Clock::now());
+    this->SetSolverMesh(m_StaticSimplexMesh);
   }
 
   for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
@@ -300,11 +296,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       t0 = Clock::now();
       bary.Build(grid, *m_CurrentMesh, threader);
       m_Timing.barycentric += seconds(t0, Clock::now());
-      t0 = Clock::now();
-      const auto tSolve0 = Clock::now();
-      m_Solver->SetMesh(*m_CurrentMesh);
-      m_Timing.femSolve += seconds(tSolve0, Clock::now());
-      m_Timing.registration += seconds(t0, Clock::now());
+      this->SetSolverMesh(*m_CurrentMesh);
     }
     record.nodes = m_CurrentMesh->NumberOfNodes();
 
@@ -378,6 +370,17 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::SetSolverMesh(const SimplexMeshType & mesh)
+{
+  const auto t0 = std::chrono::steady_clock::now();
+  m_Solver->SetMesh(mesh);
+  const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  m_Timing.femSolve += elapsed;
+  m_Timing.registration += elapsed;
 }
 
 template <typename TF, typename TM, typename TD>
@@ -585,11 +588,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     t0 = Clock::now();
     this->UploadMesh(context, m_StaticSimplexMesh);
     m_Timing.barycentric += seconds(t0, Clock::now());
-    t0 = Clock::now();
-    const auto tSolve0 = Clock::now();
-    m_Solver->SetMesh(m_StaticSimplexMesh);
-    m_Timing.femSolve += seconds(tSolve0, Clock::now());
-    m_Timing.registration += seconds(t0, Clock::now());
+    this->SetSolverMesh(m_StaticSimplexMesh);
   }
 
   for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
@@ -677,11 +676,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       t0 = Clock::now();
       this->UploadMesh(context, *m_CurrentMesh);
       m_Timing.barycentric += seconds(t0, Clock::now());
-      t0 = Clock::now();
-      const auto tSolve0 = Clock::now();
-      m_Solver->SetMesh(*m_CurrentMesh);
-      m_Timing.femSolve += seconds(tSolve0, Clock::now());
-      m_Timing.registration += seconds(t0, Clock::now());
+      this->SetSolverMesh(*m_CurrentMesh);
     }
     record.nodes = m_CurrentMesh->NumberOfNodes();
 
