@@ -648,14 +648,7 @@ struct RegistrationContext::Impl
   DeviceBuffer<long long>          bounds;
   DeviceBuffer<int>                elements, incidenceStart, incidence;
   std::vector<int>                 hostStart, hostIncidence;
-  size_t                           allocated{ 0 };
-
-  template <typename T>
-  void
-  Track(const DeviceBuffer<T> & b)
-  {
-    allocated += b.Size() * sizeof(T);
-  }
+  size_t                           allocated{ 0 }; // the largest Bytes() seen
 
   size_t
   Bytes() const

@@ -234,6 +234,13 @@ private:
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
   void
   BuildStaticMesh();
+  /** Both back-ends: zero output field, the stages' settings, history/timing/beta reset (needs m_BackendUsed). */
+  void
+  ConfigureStages();
+  /** nodalU = K^-1 nodalForce (timed as FEM solve); while beta is unset (the first iteration) sets it so that
+   * beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
+  bool
+  SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd);
   /** Assembles the stiffness of a new mesh (timed as FEM solve, part of registration). */
   void
   SetSolverMesh(const SimplexMeshType & mesh);

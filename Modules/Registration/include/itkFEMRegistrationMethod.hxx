@@ -208,32 +208,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   // three full fields: w, the update (also the scratch of exp and the target of the composition) and exp(update)
   std::vector<float> w(n * D, 0.0f), update(n * D), expUpdate(n * D);
   DisplacementFieldType * field = this->GetDisplacementField();
-  field->SetBufferedRegion(field->GetLargestPossibleRegion());
-  field->Allocate();
-  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
-
-  m_DensityFilter->SetFixedImage(fixed);
-  m_DensityFilter->SetMovingImage(moving);
-  m_DensityFilter->SetDisplacementField(field);
-  m_DensityFilter->SetFixedMask(this->GetFixedMask());
-  m_DensityFilter->ComputeForceFieldOff(); // the registration reads the grid-frame force
-  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
-  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
-  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
-  m_CVTFilter->SetEpsilon(m_CVTEpsilon);
-  m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
-  m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  m_CVTFilter->SetBackend(BackendEnum::CPU);
-  m_Solver->SetLambda(m_Lambda);
-  m_Solver->SetMu(m_Mu);
-  m_Labels = nullptr;
-
-  m_History.clear();
-  m_Timing = Timing();
-  m_Beta = 0.0;
-  m_CurrentMesh = nullptr;
-  ++m_CurrentMeshVersion;
+  this->ConfigureStages();
   dmr::BarycentricMap<D> bary;
   std::vector<double>    nodalForce, nodalU, nodalW;
 
@@ -303,24 +278,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     // 3-5. nodal forces, solve, beta, interpolate, exponential update
     t0 = Clock::now();
     bary.Gather(m_DensityFilter->GetGridForce().data(), dV, nodalForce, threader);
-    const auto tSolve = Clock::now();
-    m_Solver->Solve(nodalForce, nodalU);
-    m_Timing.femSolve += seconds(tSolve, Clock::now());
-    double fKf = 0.0;
-    for (size_t i = 0; i < nodalU.size(); ++i)
+    if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd))
     {
-      fKf += nodalForce[i] * nodalU[i];
-    }
-    if (it == 1 || m_Beta == 0.0)
-    {
-      if (!(fKf > 0.0) || !(record.mssd > 0.0))
-      {
-        // the images already match (no force): nothing to register
-        m_History.push_back(record);
-        m_Timing.registration += seconds(t0, Clock::now());
-        break;
-      }
-      m_Beta = fKf / (2.0 * m_EnergyRatio * record.mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
+      // the images already match (no force): nothing to register
+      m_History.push_back(record);
+      m_Timing.registration += seconds(t0, Clock::now());
+      break;
     }
     // R of the current transformation on this mesh: nodal values of w sampled at the nodes
     const SimplexMeshType & mesh = *m_CurrentMesh;
@@ -370,6 +333,67 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
+{
+  // the output field starts at 0; the CPU path's density filter reads it every iteration, the CUDA path keeps w on
+  // the device and uses the density filter only for its pyramids and alpha rule
+  const bool              cuda = m_BackendUsed == BackendEnum::CUDA;
+  DisplacementFieldType * field = this->GetDisplacementField();
+  field->SetBufferedRegion(field->GetLargestPossibleRegion());
+  field->Allocate();
+  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
+
+  m_DensityFilter->SetFixedImage(this->GetFixedImage());
+  m_DensityFilter->SetMovingImage(this->GetMovingImage());
+  m_DensityFilter->SetDisplacementField(cuda ? nullptr : field);
+  m_DensityFilter->SetFixedMask(this->GetFixedMask());
+  m_DensityFilter->ComputeForceFieldOff(); // the registration reads the grid-frame force
+  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
+  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
+  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
+  m_CVTFilter->SetEpsilon(m_CVTEpsilon);
+  m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
+  m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+  m_CVTFilter->SetBackend(cuda ? m_Backend : BackendEnum::CPU);
+  m_Solver->SetLambda(m_Lambda);
+  m_Solver->SetMu(m_Mu);
+  m_Labels = nullptr;
+
+  m_History.clear();
+  m_Timing = Timing();
+  m_Beta = 0.0;
+  m_CurrentMesh = nullptr;
+  ++m_CurrentMeshVersion;
+}
+
+template <typename TF, typename TM, typename TD>
+bool
+FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & nodalForce,
+                                                   std::vector<double> &       nodalU,
+                                                   double                      mssd)
+{
+  const auto t0 = std::chrono::steady_clock::now();
+  m_Solver->Solve(nodalForce, nodalU);
+  m_Timing.femSolve += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (m_Beta == 0.0)
+  {
+    double fKf = 0.0;
+    for (size_t i = 0; i < nodalU.size(); ++i)
+    {
+      fKf += nodalForce[i] * nodalU[i];
+    }
+    if (!(fKf > 0.0) || !(mssd > 0.0))
+    {
+      return false;
+    }
+    m_Beta = fKf / (2.0 * m_EnergyRatio * mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
+  }
+  return true;
 }
 
 template <typename TF, typename TM, typename TD>
@@ -450,6 +474,85 @@ ThrowOnError(const cuda::Status & status, const char * stage)
     itkGenericExceptionMacro("CUDA back-end, " << stage << ": " << status.message);
   }
 }
+
+/** The device's view of the CPU pyramid (DensityFieldFilter::PyramidLevel): sizes, maps, MSSD weights, and the
+ * moving-level index per mm of the grid-frame displacement (MB maps a physical displacement, u_phys = Direction w). */
+template <unsigned int D, typename TLevel, typename TDirection>
+std::vector<cuda::PyramidLevelView>
+PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedDirection, size_t numberOfPixels)
+{
+  std::vector<cuda::PyramidLevelView> views(pyramid.size());
+  for (size_t l = 0; l < pyramid.size(); ++l)
+  {
+    const TLevel &            L = pyramid[l];
+    cuda::PyramidLevelView & v = views[l];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      v.fixedSize[r] = L.fixedGrid.size[r];
+      v.movingSize[r] = L.movingGrid.size[r];
+      v.Fc[r] = L.Fc[r];
+      v.Mc[r] = L.Mc[r];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        v.FA[r][k] = L.FA[r][k];
+        v.MA[r][k] = L.MA[r][k];
+        double mg = 0.0;
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          mg += L.MB[r][j] * fixedDirection[j][k];
+        }
+        v.MG[r][k] = mg;
+      }
+    }
+    v.fixed = L.fixed.data();
+    v.moving = L.moving.data();
+    v.movingGradient = L.movingGradient.data();
+    v.weight = static_cast<double>(L.fixedGrid.numberOfPixels) / static_cast<double>(numberOfPixels);
+  }
+  return views;
+}
+
+/** What RegistrationContext::SetMesh takes besides the nodes: per element its node ids, the rasterisation set-up of
+ * BarycentricMap::ElementAffine (inverse edge matrix and first vertex) and its pixel bounding box. */
+template <unsigned int D>
+struct MeshRaster
+{
+  std::vector<int32_t> elements; // D + 1 per element
+  std::vector<double>  affine;   // D * D + D per element
+  std::vector<int64_t> bounds;   // lo[D], hi[D] per element
+};
+
+template <unsigned int D>
+MeshRaster<D>
+MeshRasterData(const Grid<D> & grid, const SimplexMesh<D> & mesh, MultiThreaderBase * threader)
+{
+  constexpr size_t affineSize = D * D + D;
+  const size_t     nElements = mesh.elements.size();
+  MeshRaster<D>    raster;
+  raster.elements.resize(nElements * (D + 1));
+  raster.affine.resize(nElements * affineSize);
+  raster.bounds.resize(nElements * 2 * D);
+  ParallelForChunks(
+    threader,
+    nElements,
+    [&](size_t b, size_t e) {
+      for (size_t i = b; i < e; ++i)
+      {
+        BarycentricMap<D>::ElementAffine(grid,
+                                         mesh,
+                                         i,
+                                         raster.affine.data() + i * affineSize,
+                                         raster.bounds.data() + i * 2 * D,
+                                         raster.bounds.data() + i * 2 * D + D);
+        for (unsigned int v = 0; v <= D; ++v)
+        {
+          raster.elements[i * (D + 1) + v] = static_cast<int32_t>(mesh.elements[i][v]);
+        }
+      }
+    },
+    256);
+  return raster;
+}
 } // namespace dmr
 
 template <typename TF, typename TM, typename TD>
@@ -457,29 +560,14 @@ void
 FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh)
 {
   constexpr unsigned int D = ImageDimension;
-  constexpr size_t       affineSize = D * D + D;
-  const auto             grid = dmr::Grid<D>::FromImage(this->GetFixedImage());
-  const size_t           nElements = mesh.elements.size();
-  std::vector<double>    affine(nElements * affineSize);
-  std::vector<int64_t>   bounds(nElements * 2 * D);
-  std::vector<int32_t>   elements(nElements * (D + 1));
-  dmr::ParallelForChunks(
-    this->GetMultiThreader(),
-    nElements,
-    [&](size_t b, size_t e) {
-      for (size_t i = b; i < e; ++i)
-      {
-        dmr::BarycentricMap<D>::ElementAffine(
-          grid, mesh, i, affine.data() + i * affineSize, bounds.data() + i * 2 * D, bounds.data() + i * 2 * D + D);
-        for (unsigned int v = 0; v <= D; ++v)
-        {
-          elements[i * (D + 1) + v] = static_cast<int32_t>(mesh.elements[i][v]);
-        }
-      }
-    },
-    256);
-  dmr::ThrowOnError(
-    context.SetMesh(mesh.nodes.data(), mesh.NumberOfNodes(), elements.data(), nElements, affine.data(), bounds.data()),
+  const auto raster =
+    dmr::MeshRasterData<D>(dmr::Grid<D>::FromImage(this->GetFixedImage()), mesh, this->GetMultiThreader());
+  dmr::ThrowOnError(context.SetMesh(mesh.nodes.data(),
+                                    mesh.NumberOfNodes(),
+                                    raster.elements.data(),
+                                    mesh.elements.size(),
+                                    raster.affine.data(),
+                                    raster.bounds.data()),
     "barycentric rasterisation");
 }
 
@@ -492,56 +580,17 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
 
   const FixedImageType *  fixed = this->GetFixedImage();
-  const MovingImageType * moving = this->GetMovingImage();
   MultiThreaderBase *     threader = this->GetMultiThreader();
   const auto              grid = dmr::Grid<D>::FromImage(fixed);
   const size_t            n = grid.numberOfPixels;
   const double            dV = grid.PixelVolume();
 
   DisplacementFieldType * field = this->GetDisplacementField();
-  field->SetBufferedRegion(field->GetLargestPossibleRegion());
-  field->Allocate();
-  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
+  this->ConfigureStages();
 
   // the pyramids are built once on the CPU by the density filter (the same levels as the CPU path) and uploaded
   auto t0 = Clock::now();
-  m_DensityFilter->SetFixedImage(fixed);
-  m_DensityFilter->SetMovingImage(moving);
-  m_DensityFilter->SetDisplacementField(nullptr);
-  m_DensityFilter->SetFixedMask(this->GetFixedMask());
-  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
-  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
-  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  const auto & pyramid = m_DensityFilter->GetPyramid();
-  const auto & dirF = fixed->GetDirection();
-  std::vector<dmr::cuda::PyramidLevelView> views(pyramid.size());
-  for (size_t l = 0; l < pyramid.size(); ++l)
-  {
-    const auto &                L = pyramid[l];
-    dmr::cuda::PyramidLevelView & v = views[l];
-    for (unsigned int r = 0; r < D; ++r)
-    {
-      v.fixedSize[r] = L.fixedGrid.size[r];
-      v.movingSize[r] = L.movingGrid.size[r];
-      v.Fc[r] = L.Fc[r];
-      v.Mc[r] = L.Mc[r];
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        v.FA[r][k] = L.FA[r][k];
-        v.MA[r][k] = L.MA[r][k];
-        double mg = 0.0; // MB maps a physical displacement; w is in the grid frame: u_phys = Direction w
-        for (unsigned int j = 0; j < D; ++j)
-        {
-          mg += L.MB[r][j] * dirF[j][k];
-        }
-        v.MG[r][k] = mg;
-      }
-    }
-    v.fixed = L.fixed.data();
-    v.moving = L.moving.data();
-    v.movingGradient = L.movingGradient.data();
-    v.weight = static_cast<double>(L.fixedGrid.numberOfPixels) / static_cast<double>(n);
-  }
+  const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(), fixed->GetDirection(), n);
   std::vector<uint8_t> mask;
   if (const auto * maskImage = this->GetFixedMask())
   {
@@ -562,18 +611,6 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   std::vector<uint8_t>().swap(mask);
   m_Timing.registration += seconds(t0, Clock::now());
 
-  m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
-  m_CVTFilter->SetEpsilon(m_CVTEpsilon);
-  m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
-  m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  m_CVTFilter->SetBackend(m_Backend);
-  m_Solver->SetLambda(m_Lambda);
-  m_Solver->SetMu(m_Mu);
-  m_Labels = nullptr;
-  m_History.clear();
-  m_Beta = 0.0;
-  m_CurrentMesh = nullptr;
-  ++m_CurrentMeshVersion;
   std::vector<double> nodalForce, nodalU, nodalW;
   // host copy of the density for the initial contraction (CPU), then released
   typename DensityImageType::Pointer density;
@@ -685,23 +722,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     const SimplexMeshType & mesh = *m_CurrentMesh;
     nodalForce.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.GatherForce(dV, nodalForce.data()), "force gathering");
-    const auto tSolve = Clock::now();
-    m_Solver->Solve(nodalForce, nodalU);
-    m_Timing.femSolve += seconds(tSolve, Clock::now());
-    double fKf = 0.0;
-    for (size_t i = 0; i < nodalU.size(); ++i)
+    if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd))
     {
-      fKf += nodalForce[i] * nodalU[i];
-    }
-    if (it == 1 || m_Beta == 0.0)
-    {
-      if (!(fKf > 0.0) || !(record.mssd > 0.0))
-      {
-        m_History.push_back(record);
-        m_Timing.registration += seconds(t0, Clock::now());
-        break;
-      }
-      m_Beta = fKf / (2.0 * m_EnergyRatio * record.mssd);
+      // the images already match (no force): nothing to register
+      m_History.push_back(record);
+      m_Timing.registration += seconds(t0, Clock::now());
+      break;
     }
     nodalW.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.SampleFieldAtNodes(nodalW.data()), "nodal sampling");
