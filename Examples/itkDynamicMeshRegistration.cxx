@@ -80,6 +80,8 @@ struct Options
   double       cvtEpsilon{ 0.0 };
   double       lambda{ 1.0 }, mu{ 1.0 };
   double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
+  std::string  forceGradient{ "warped" };
+  long         stepHalvings{ 5 };
   std::string  fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
   bool         landmarksInMM{ false };
   bool         window{ false };
@@ -99,6 +101,10 @@ const char * const Usage =
   "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
   "  --energy-ratio R       beta is set at iteration 1 so that beta R / D = R (default 0.02, paper 5.1)\n"
   "  --alpha-factor A       density base value alpha = A x mean |f|^2 (default 0.1, paper 5.1)\n"
+  "  --force-gradient G     warped (default: gradient of the warped moving image, the derivative for W o exp(u))\n"
+  "                         | mapped (moving image gradient at W(x), a literal reading of paper Eq. 5)\n"
+  "  --step-halvings H      halve an update at most H times while it would raise the MSSD; if none lowers it, keep\n"
+  "                         the transformation (default 5; 0: always take the full step, as in the paper)\n"
   "  --cvt-max-sweeps S     at most S swap sweeps of the CVT optimisation per iteration (default 1000: converge)\n"
   "  --cvt-epsilon E        stop the CVT sweeps when a sweep lowers the energy by at most E x energy (default 0)\n"
   "  --threads T            worker threads (default: all cores)\n"
@@ -210,6 +216,10 @@ ParseArguments(int argc, char * argv[])
       opt.energyRatio = ParseReal(a, v);
     else if (a == "--alpha-factor")
       opt.alphaFactor = ParseReal(a, v);
+    else if (a == "--step-halvings")
+      opt.stepHalvings = ParseInteger(a, v);
+    else if (a == "--force-gradient")
+      opt.forceGradient = v;
     else if (a == "--fixed-mask")
       opt.fixedMask = v;
     else if (a == "--fixed-landmarks")
@@ -246,6 +256,10 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--lambda must be >= 0 and --mu > 0");
   if (opt.energyRatio <= 0 || opt.alphaFactor <= 0)
     throw UsageError("--energy-ratio and --alpha-factor must be positive");
+  if (opt.stepHalvings < 0 || opt.stepHalvings > 30)
+    throw UsageError("--step-halvings must be between 0 and 30");
+  if (opt.forceGradient != "warped" && opt.forceGradient != "mapped")
+    throw UsageError("--force-gradient must be warped or mapped");
   if (opt.backend != "auto" && opt.backend != "cpu" && opt.backend != "cuda")
     throw UsageError("--backend must be auto, cpu or cuda");
   if (opt.regularSize != 0 && opt.regularSize < 2)
@@ -540,6 +554,9 @@ Run(const Options & opt)
   method->SetMu(opt.mu);
   method->SetEnergyRatio(opt.energyRatio);
   method->SetAlphaFactor(opt.alphaFactor);
+  method->SetMaximumStepHalvings(static_cast<unsigned int>(opt.stepHalvings));
+  method->SetForceGradient(opt.forceGradient == "mapped" ? itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving
+                                                         : itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving);
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
   method->SetMaximumNumberOfSweeps(static_cast<itk::SizeValueType>(opt.cvtMaxSweeps));
   method->SetCVTEpsilon(opt.cvtEpsilon);
@@ -659,12 +676,12 @@ Run(const Options & opt)
 
   {
     std::ofstream csv(staging.Path("energy.csv"));
-    csv << "iteration,mssd,ssd,elastic,total,nodes,cvt_sweeps,max_update_px\n";
+    csv << "iteration,mssd,ssd,elastic,total,nodes,cvt_sweeps,max_update_px,step_scale\n";
     csv << std::setprecision(10);
     for (const auto & r : history)
     {
       csv << r.iteration << ',' << r.mssd << ',' << r.ssd << ',' << r.elastic << ',' << r.total << ',' << r.nodes << ','
-          << r.sweeps << ',' << r.maxUpdate << '\n';
+          << r.sweeps << ',' << r.maxUpdate << ',' << r.stepScale << '\n';
     }
   }
 #ifdef DMR_WITH_VTK
@@ -741,6 +758,8 @@ Run(const Options & opt)
        << "  \"mu\": " << opt.mu << ",\n"
        << "  \"energy_ratio\": " << opt.energyRatio << ",\n"
        << "  \"alpha_factor\": " << opt.alphaFactor << ",\n"
+       << "  \"force_gradient\": \"" << opt.forceGradient << "\",\n"
+       << "  \"step_halvings\": " << opt.stepHalvings << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"
        << "  \"cvt_max_sweeps\": " << opt.cvtMaxSweeps << ",\n"
        << "  \"cvt_epsilon\": " << opt.cvtEpsilon << ",\n"

@@ -85,7 +85,8 @@ Blob(unsigned int n, const double * centre, const double * radii)
 
 template <unsigned int D>
 typename MethodOf<D>::Pointer
-Registration(Backend backend, MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n)
+Registration(Backend backend, MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n,
+             double energyRatio = 0.1)
 {
   const double cf[3] = { 0.45 * n, 0.5 * n, 0.45 * n }, rf[3] = { 0.3 * n, 0.22 * n, 0.25 * n };
   const double cm[3] = { 0.52 * n, 0.47 * n, 0.5 * n }, rm[3] = { 0.24 * n, 0.25 * n, 0.2 * n };
@@ -95,7 +96,7 @@ Registration(Backend backend, MeshMode mode, unsigned int nodes, unsigned int it
   method->SetNumberOfNodes(nodes);
   method->SetNumberOfIterations(iterations);
   method->SetMeshMode(mode);
-  method->SetEnergyRatio(0.1);
+  method->SetEnergyRatio(energyRatio);
   method->SetMaximumNumberOfSweeps(50);
   method->SetBackend(backend);
   return method;
@@ -127,10 +128,15 @@ MaxDifferenceInVoxels(const TField * a, const TField * b)
 
 template <unsigned int D>
 void
-RunsAgree(MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n)
+RunsAgree(MeshMode     mode,
+          unsigned int nodes,
+          unsigned int iterations,
+          unsigned int n,
+          double       energyRatio = 0.1,
+          size_t *     halvedSteps = nullptr)
 {
-  auto cpu = Registration<D>(Backend::CPU, mode, nodes, iterations, n);
-  auto gpu = Registration<D>(Backend::CUDA, mode, nodes, iterations, n);
+  auto cpu = Registration<D>(Backend::CPU, mode, nodes, iterations, n, energyRatio);
+  auto gpu = Registration<D>(Backend::CUDA, mode, nodes, iterations, n, energyRatio);
   cpu->Update();
   gpu->Update();
   EXPECT_EQ(cpu->GetBackendUsed(), Backend::CPU);
@@ -154,6 +160,17 @@ RunsAgree(MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned i
   {
     EXPECT_EQ(gpu->GetHistory()[i].nodes, cpu->GetHistory()[i].nodes) << "iteration " << i + 1;
     EXPECT_NEAR(gpu->GetHistory()[i].mssd, cpu->GetHistory()[i].mssd, 1e-6 * cpu->GetHistory()[i].mssd);
+    EXPECT_EQ(gpu->GetHistory()[i].stepScale, cpu->GetHistory()[i].stepScale) << "iteration " << i + 1;
+  }
+  size_t halved = 0;
+  for (const auto & r : cpu->GetHistory())
+  {
+    halved += r.stepScale < 1.0 ? 1 : 0;
+  }
+  std::cout << "steps halved in " << halved << " of " << cpu->GetHistory().size() << " iterations" << std::endl;
+  if (halvedSteps)
+  {
+    *halvedSteps = halved;
   }
   std::pair<double, double> range;
   itk::dmr::JacobianDeterminantImage(gpu->GetDisplacementField(), range, nullptr);
@@ -192,7 +209,7 @@ StagesAgree(unsigned int nodes, unsigned int n)
   itk::dmr::cuda::RegistrationContext context;
   ASSERT_TRUE(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, nullptr).Ok());
   itk::dmr::cuda::ForceStatistics statistics;
-  ASSERT_TRUE(context.ComputeForce(statistics).Ok());
+  ASSERT_TRUE(context.ComputeForce(statistics, true).Ok());
   EXPECT_NEAR(statistics.mssd, density->GetMSSD(), 1e-9 * density->GetMSSD());
   EXPECT_NEAR(statistics.ssd, density->GetSSD(), 1e-9 * density->GetSSD());
   std::vector<float> force(grid.numberOfPixels * D);
@@ -237,6 +254,20 @@ StagesAgree(unsigned int nodes, unsigned int n)
   EXPECT_GT(maxNodal, 0.0);
   EXPECT_LE(maxNodalDiff, 1e-9 * maxNodal);
 
+  // RevertUpdate (the rejected step of the safeguarded iteration) restores w bit for bit, once
+  std::vector<float> before(grid.numberOfPixels * D), after(grid.numberOfPixels * D);
+  ASSERT_TRUE(context.DownloadField(before.data()).Ok());
+  double       maxUpdate = 0.0;
+  unsigned int squarings = 0;
+  ASSERT_TRUE(context.ApplyUpdate(gpuNodal.data(), 2.0 / maxNodal, maxUpdate, squarings).Ok());
+  EXPECT_GT(maxUpdate, 0.1);
+  ASSERT_TRUE(context.DownloadField(after.data()).Ok());
+  EXPECT_NE(after, before);
+  ASSERT_TRUE(context.RevertUpdate().Ok());
+  ASSERT_TRUE(context.DownloadField(after.data()).Ok());
+  EXPECT_EQ(after, before);
+  EXPECT_FALSE(context.RevertUpdate().Ok());
+
   // a mesh that does not cover the image is refused with a message, not a crash
   auto partial = mesh;
   partial.elements.resize(partial.elements.size() / 2);
@@ -244,6 +275,65 @@ StagesAgree(unsigned int nodes, unsigned int n)
                                       partial.elements.size(), raster.affine.data(), raster.bounds.data());
   EXPECT_FALSE(status.Ok());
   EXPECT_NE(status.message.find("not covered"), std::string::npos) << status.message;
+
+  // the force under a non-zero field, with both gradient rules (the warped moving gradient reads grad w): a smooth
+  // swirl of a few pixels, given to the CPU filter in the physical frame and to the context in the grid frame
+  using FieldType = itk::Image<itk::Vector<float, D>, D>;
+  auto field = FieldType::New();
+  field->CopyInformation(fixed);
+  field->SetRegions(fixed->GetLargestPossibleRegion());
+  field->Allocate();
+  std::vector<float> gridField(grid.numberOfPixels * D);
+  const auto &       direction = fixed->GetDirection();
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto idx = grid.Index(p);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      gridField[p * D + k] = static_cast<float>(3.0 * std::sin(0.11 * static_cast<double>(idx[(k + 1) % D]) + 0.7 * k) *
+                                                std::cos(0.07 * static_cast<double>(idx[k])));
+    }
+    for (unsigned int m = 0; m < D; ++m)
+    {
+      double v = 0.0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        v += direction[m][k] * gridField[p * D + k];
+      }
+      field->GetBufferPointer()[p][m] = static_cast<float>(v);
+    }
+  }
+  ASSERT_TRUE(context.UploadField(gridField.data()).Ok());
+  density->SetDisplacementField(field);
+  std::vector<float> forceOf[2];
+  for (const bool warped : { true, false })
+  {
+    density->SetForceGradient(warped ? itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving
+                                     : itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
+    density->Update();
+    ASSERT_TRUE(context.ComputeForce(statistics, warped).Ok());
+    EXPECT_NEAR(statistics.mssd, density->GetMSSD(), 1e-6 * density->GetMSSD());
+    std::vector<float> & gpu = forceOf[warped ? 0 : 1];
+    gpu.resize(grid.numberOfPixels * D);
+    ASSERT_TRUE(context.DownloadForce(gpu.data()).Ok());
+    const auto & cpu = density->GetGridForce();
+    double       largest = 0.0, largestDiff = 0.0;
+    for (size_t i = 0; i < gpu.size(); ++i)
+    {
+      largest = std::max(largest, std::abs(static_cast<double>(cpu[i])));
+      largestDiff = std::max(largestDiff, std::abs(static_cast<double>(cpu[i]) - gpu[i]));
+    }
+    EXPECT_GT(largest, 0.0);
+    EXPECT_LE(largestDiff, 1e-5 * largest) << (warped ? "warped" : "mapped") << " moving gradient";
+  }
+  // the two rules differ under this field (the flag reaches the kernel)
+  double largest = 0.0, largestDiff = 0.0;
+  for (size_t i = 0; i < forceOf[0].size(); ++i)
+  {
+    largest = std::max(largest, std::abs(static_cast<double>(forceOf[0][i])));
+    largestDiff = std::max(largestDiff, std::abs(static_cast<double>(forceOf[0][i]) - forceOf[1][i]));
+  }
+  EXPECT_GT(largestDiff, 0.05 * largest);
 }
 } // namespace
 
@@ -263,6 +353,16 @@ TEST(CudaRegistration, DynamicMeshRunMatchesCPU2D)
 {
   DMR_REQUIRE_DEVICE();
   RunsAgree<2>(MeshMode::Dynamic, 40, 60, 96);
+}
+
+// 30 times the usual step: the safeguard halves about half of the steps (GPU: RevertUpdate) and both back-ends must
+// take the same ones
+TEST(CudaRegistration, SafeguardedStepsMatchCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  size_t halved = 0;
+  RunsAgree<2>(MeshMode::Dynamic, 40, 40, 96, 3.0, &halved);
+  EXPECT_GT(halved, 5u);
 }
 
 TEST(CudaRegistration, RegularMeshRunMatchesCPU2D)

@@ -68,7 +68,9 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
                                             { "NumberOfIterations", "NumberOfNodes", "NumberOfLevels", "Lambda", "Mu",
                                               "EnergyRatio", "AlphaFactor", "CVTEpsilon", "MaximumNumberOfSweeps",
                                               "ReinitializationInterval", "MeshMode", "RegularGridSize", "Backend",
-                                              "Beta", "FinalSSD" }));
+                                              "Beta", "FinalSSD", "ForceGradient", "MaximumStepHalvings" }));
+  DMR_EXPECT_SET_GET(method, MaximumStepHalvings, 2u);
+  DMR_EXPECT_SET_GET(method, ForceGradient, itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
   DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);
   DMR_EXPECT_SET_GET(method, NumberOfNodes, 55u);
   DMR_EXPECT_SET_GET(method, Lambda, 0.5);
@@ -111,6 +113,43 @@ TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)
     EXPECT_LT(h[i].mssd, h[i - 10].mssd) << "iteration " << i;
   }
   EXPECT_LT(method->GetFinalMSSD(), h.back().mssd);
+}
+
+// Far too large steps (energy ratio 2 instead of 0.02): the paper's plain iteration overshoots and the MSSD rises;
+// the safeguarded step halves such updates, so the MSSD never increases and the run ends lower.
+TEST(FEMRegistrationMethod, SafeguardedStepNeverRaisesTheMSSD)
+{
+  auto plain = SmallRegistration(MeshMode::Dynamic, 30);
+  plain->SetEnergyRatio(2.0);
+  plain->SetMaximumStepHalvings(0);
+  plain->Update();
+  const auto & p = plain->GetHistory();
+  size_t rises = 0;
+  for (size_t i = 1; i < p.size(); ++i)
+  {
+    rises += p[i].mssd > p[i - 1].mssd ? 1 : 0;
+    EXPECT_EQ(p[i].stepScale, 1.0);
+  }
+  EXPECT_GT(rises, 0u) << "the plain iteration should overshoot at this step size";
+
+  auto safe = SmallRegistration(MeshMode::Dynamic, 30);
+  safe->SetEnergyRatio(2.0);
+  EXPECT_EQ(safe->GetMaximumStepHalvings(), 5u);
+  safe->Update();
+  const auto & h = safe->GetHistory();
+  ASSERT_EQ(h.size(), 30u);
+  size_t halved = 0;
+  for (size_t i = 1; i < h.size(); ++i)
+  {
+    EXPECT_LE(h[i].mssd, h[i - 1].mssd) << "iteration " << h[i].iteration;
+    halved += h[i].stepScale < 1.0 ? 1 : 0;
+  }
+  EXPECT_GT(halved, 0u);
+  EXPECT_LE(safe->GetFinalMSSD(), h.back().mssd);
+  EXPECT_LT(safe->GetFinalMSSD(), plain->GetFinalMSSD());
+  std::pair<double, double> range;
+  itk::dmr::JacobianDeterminantImage(safe->GetDisplacementField(), range, nullptr);
+  EXPECT_GT(range.first, 0.0);
 }
 
 TEST(FEMRegistrationMethod, RegularAndStaticMeshesLowerSSD)

@@ -48,12 +48,25 @@ public:
     /** static mesh supplied by the user (SetStaticMesh) */
     Static = 2
   };
+
+  /** Which image gradient the force f = 2 (T - S o W) grad (paper Eq. 5) uses at a fixed-grid point x. */
+  enum class ForceGradient : uint8_t
+  {
+    /** grad of the warped moving image, grad_x S(W(x)) = (I + grad u)^T (grad S)(W(x)): the derivative of the MSSD
+     * with respect to the compositional update W <- W o exp(u) (default) */
+    WarpedMoving = 0,
+    /** the moving image's gradient mapped through W, (grad S)(W(x)): a literal reading of Eq. 5, which ignores the
+     * stretch and rotation of the current transformation */
+    MappedMoving = 1
+  };
 };
 
 extern DynamicMeshRegistration_EXPORT std::ostream &
                                       operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::Backend value);
 extern DynamicMeshRegistration_EXPORT std::ostream &
                                       operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::MeshMode value);
+extern DynamicMeshRegistration_EXPORT std::ostream &
+                                      operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::ForceGradient value);
 } // namespace itk
 
 #endif

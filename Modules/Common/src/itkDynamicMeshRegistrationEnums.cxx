@@ -48,4 +48,17 @@ operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::MeshMode valu
   }
   return out << "INVALID MeshMode";
 }
+
+std::ostream &
+operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::ForceGradient value)
+{
+  switch (value)
+  {
+    case DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving:
+      return out << "warped";
+    case DynamicMeshRegistrationEnums::ForceGradient::MappedMoving:
+      return out << "mapped";
+  }
+  return out << "INVALID ForceGradient";
+}
 } // namespace itk

@@ -168,6 +168,50 @@ GradientInto(MultiThreaderBase *       threader,
   });
 }
 
+/** Jt[j][k] = delta_jk + d u_k / d x_j at pixel p (index idx), the transpose of the Jacobian of W(x) = x + u(x) in
+ * the grid frame of `grid` (per mm; central differences, one-sided at the border). u is a physical-frame vector field
+ * on the grid (nullptr: identity), rotated into the grid frame by the direction matrix. */
+template <unsigned int D, typename TVector, typename TDirection>
+inline void
+WarpJacobianTranspose(const Grid<D> &         grid,
+                      const std::array<int64_t, D> & idx,
+                      size_t                  p,
+                      const TVector *         u,
+                      const TDirection &      direction,
+                      double (&Jt)[D][D])
+{
+  for (unsigned int j = 0; j < D; ++j)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      Jt[j][k] = (j == k) ? 1.0 : 0.0;
+    }
+  }
+  if (!u)
+  {
+    return;
+  }
+  for (unsigned int j = 0; j < D; ++j)
+  {
+    const size_t lo = idx[j] > 0 ? p - grid.stride[j] : p;
+    const size_t hi = idx[j] + 1 < static_cast<int64_t>(grid.size[j]) ? p + grid.stride[j] : p;
+    if (hi == lo)
+    {
+      continue; // a single pixel along this axis
+    }
+    const double h = static_cast<double>((hi - lo) / grid.stride[j]) * grid.spacing[j];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      double du = 0.0;
+      for (unsigned int m = 0; m < D; ++m)
+      {
+        du += direction[m][k] * (static_cast<double>(u[hi][m]) - static_cast<double>(u[lo][m]));
+      }
+      Jt[j][k] += du / h;
+    }
+  }
+}
+
 /** Affine map from a reference image's indices to another image's continuous indices through physical space:
  * c = A * index + c0. */
 template <unsigned int D, typename TRef, typename TOther>
@@ -334,6 +378,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   float *      gridForce = m_GridForce.data();
   const auto * levels = m_Levels.data();
   const unsigned int nLevels = m_NumberOfLevels;
+  const bool         warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
   // Eq. 3 sums level i over the pixels of level i. Evaluated at the fine pixels, each fine pixel stands for
   // (pixels of level i) / (fine pixels) of them.
   std::vector<double> levelWeight(nLevels);
@@ -384,6 +429,10 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
               u[k] = fieldBuffer[p][k];
             }
           }
+          // WarpedMoving: grad_x S(W(x)) = (I + grad u)^T (grad S)(W(x)); Jt[j][k] = delta_jk + d u_k / d x_j in the
+          // fixed grid frame (u_k = sum_m Direction[m][k] u_m), per mm.
+          double Jt[D][D];
+          dmr::WarpJacobianTranspose<D>(grid, idx, p, warpedGradient ? fieldBuffer : nullptr, dirF, Jt);
           double f[D] = {};
           for (unsigned int l = 0; l < nLevels; ++l)
           {
@@ -416,9 +465,14 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
             {
               acc.ssd += residual * residual;
             }
-            for (unsigned int k = 0; k < D; ++k)
+            for (unsigned int j = 0; j < D; ++j)
             {
-              f[k] += 2.0 * residual * g[k]; // paper Eq. 5
+              double gj = 0.0;
+              for (unsigned int k = 0; k < D; ++k)
+              {
+                gj += Jt[j][k] * g[k];
+              }
+              f[j] += 2.0 * residual * gj; // paper Eq. 5
             }
           }
           double f2 = 0.0;
@@ -549,6 +603,7 @@ DensityFieldFilter<TF, TM, TD, TO>::PrintSelf(std::ostream & os, Indent indent) 
   os << indent << "NumberOfLevels: " << m_NumberOfLevels << std::endl;
   os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
   os << indent << "UseFixedAlpha: " << (m_UseFixedAlpha ? "On" : "Off") << std::endl;
+  os << indent << "ForceGradient: " << m_ForceGradient << std::endl;
   os << indent << "ComputeForceField: " << (m_ComputeForceField ? "On" : "Off") << std::endl;
   os << indent << "Alpha: " << m_Alpha << std::endl;
   os << indent << "MSSD: " << m_MSSD << std::endl;

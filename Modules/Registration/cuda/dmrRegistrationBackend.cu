@@ -161,7 +161,14 @@ AtomicMaxNonNegative(unsigned long long * address, double v)
 
 template <int D>
 __global__ void
-ForceKernel(DeviceGrid g, DeviceLevels levels, const float * w, const uint8_t * mask, float * force, float * f2out, double * sums)
+ForceKernel(DeviceGrid      g,
+            DeviceLevels    levels,
+            const float *   w,
+            bool            warpedGradient,
+            const uint8_t * mask,
+            float *         force,
+            float *         f2out,
+            double *        sums)
 {
   __shared__ double shared[Threads / 32];
   double            mssd = 0.0, ssd = 0.0, f2sum = 0.0, inside = 0.0;
@@ -184,6 +191,33 @@ ForceKernel(DeviceGrid g, DeviceLevels levels, const float * w, const uint8_t * 
     for (int k = 0; k < D; ++k)
     {
       u[k] = w[p * D + k];
+    }
+    // warped moving gradient: Jt[j][k] = delta_jk + d w_k / d x_j (per mm; central differences, one-sided at the
+    // border), as dmr::WarpJacobianTranspose on the CPU
+    double Jt[D][D];
+    for (int j = 0; j < D; ++j)
+    {
+      for (int k = 0; k < D; ++k)
+      {
+        Jt[j][k] = (j == k) ? 1.0 : 0.0;
+      }
+    }
+    if (warpedGradient)
+    {
+      for (int j = 0; j < D; ++j)
+      {
+        const long long lo = idx[j] > 0 ? p - g.stride[j] : p;
+        const long long hi = idx[j] + 1 < g.size[j] ? p + g.stride[j] : p;
+        if (hi == lo)
+        {
+          continue;
+        }
+        const double h = static_cast<double>((hi - lo) / g.stride[j]) * g.spacing[j];
+        for (int k = 0; k < D; ++k)
+        {
+          Jt[j][k] += (static_cast<double>(w[hi * D + k]) - static_cast<double>(w[lo * D + k])) / h;
+        }
+      }
     }
     double f[D] = {};
     for (int l = 0; l < levels.count; ++l)
@@ -217,9 +251,14 @@ ForceKernel(DeviceGrid g, DeviceLevels levels, const float * w, const uint8_t * 
       {
         ssd += residual * residual;
       }
-      for (int k = 0; k < D; ++k)
+      for (int j = 0; j < D; ++j)
       {
-        f[k] += 2.0 * residual * gr[k];
+        double gj = 0.0;
+        for (int k = 0; k < D; ++k)
+        {
+          gj += Jt[j][k] * gr[k];
+        }
+        f[j] += 2.0 * residual * gj;
       }
     }
     double f2 = 0.0;
@@ -639,6 +678,7 @@ struct RegistrationContext::Impl
   DeviceBuffer<uint8_t>            mask;
   bool                             hasMask{ false };
   DeviceBuffer<float>              w, bufferA, bufferB, force, density;
+  DeviceBuffer<float> *            previous{ nullptr }; // the buffer holding w before the last ApplyUpdate
   DeviceBuffer<int>                owner;
   DeviceBuffer<double>             sums;
   DeviceBuffer<unsigned long long> scratch64;
@@ -772,7 +812,7 @@ RegistrationContext::Initialize(unsigned int                          dimension,
 }
 
 Status
-RegistrationContext::ComputeForce(ForceStatistics & statistics)
+RegistrationContext::ComputeForce(ForceStatistics & statistics, bool warpedGradient)
 {
   return Guard([&] {
     Impl & m = *m_Impl;
@@ -781,11 +821,11 @@ RegistrationContext::ComputeForce(ForceStatistics & statistics)
     const unsigned  blocks = GridBlocks(m.grid.n);
     if (m.dimension == 2)
     {
-      ForceKernel<2><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), mask, m.force.Data(), m.density.Data(), m.sums.Data());
+      ForceKernel<2><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
     }
     else
     {
-      ForceKernel<3><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), mask, m.force.Data(), m.density.Data(), m.sums.Data());
+      ForceKernel<3><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
     }
     CheckLaunch("ForceKernel");
     double host[4];
@@ -1012,15 +1052,31 @@ RegistrationContext::ApplyUpdate(const double * nodalU, double scale, double & m
       ComposeKernel<3><<<blocks, Threads>>>(m.grid, m.w.Data(), b, a);
     }
     CheckLaunch("ComposeKernel");
-    // a now holds the new w: swap the buffers' roles
+    // a now holds the new w: swap the buffers' roles (the previous w stays in that buffer for RevertUpdate)
     if (a == m.bufferA.Data())
     {
       std::swap(m.w, m.bufferA);
+      m.previous = &m.bufferA;
     }
     else
     {
       std::swap(m.w, m.bufferB);
+      m.previous = &m.bufferB;
     }
+  });
+}
+
+Status
+RegistrationContext::RevertUpdate()
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    if (!m.previous)
+    {
+      throw std::runtime_error("RevertUpdate without a preceding ApplyUpdate");
+    }
+    std::swap(m.w, *m.previous);
+    m.previous = nullptr;
   });
 }
 
@@ -1035,6 +1091,7 @@ RegistrationContext::UploadField(const float * host)
 {
   return Guard([&] {
     m_Impl->w.Upload(host, m_Impl->numberOfPixels * m_Impl->dimension);
+    m_Impl->previous = nullptr;
     Check(cudaStreamSynchronize(nullptr), "UploadField");
   });
 }

@@ -79,9 +79,10 @@ public:
              const uint8_t *                       mask);
 
   /** Force f of the fixed image vs the moving image warped by w, summed over the levels (grid frame), and
-   * |f|^2 into the density buffer (0 outside the mask). */
+   * |f|^2 into the density buffer (0 outside the mask). warpedGradient: the gradient of the warped moving image,
+   * (I + grad w)^T (grad S)(W(x)), as DensityFieldFilter's ForceGradient::WarpedMoving; otherwise (grad S)(W(x)). */
   Status
-  ComputeForce(ForceStatistics & statistics);
+  ComputeForce(ForceStatistics & statistics, bool warpedGradient);
   /** density += alpha at every pixel (paper Eq. 9). */
   Status
   AddToDensity(double alpha);
@@ -120,6 +121,10 @@ public:
    * squarings). Returns the largest |u_k| / spacing_k and the number of squarings. */
   Status
   ApplyUpdate(const double * nodalU, double scale, double & maxUpdatePixels, unsigned int & squarings);
+  /** Undoes the last ApplyUpdate (w returns to its value before it; no copy: the previous w is still held by a
+   * scratch buffer). Only valid right after ApplyUpdate, with no other ApplyUpdate or UploadField in between. */
+  Status
+  RevertUpdate();
   /** Host copy of w (numberOfPixels x dimension floats, grid frame). */
   Status
   DownloadField(float * host) const;

@@ -46,7 +46,12 @@ namespace itk
  *     beta R / D = EnergyRatio (paper 5.1: 0.02). With u = K^-1 f / beta, R = f^T K^-1 f / (2 beta^2), hence
  *     beta = f^T K^-1 f / (2 EnergyRatio D);
  *  5. the nodal update is interpolated to the pixels and applied by the diffeomorphic rule W <- W o exp(u) (Eq. 8),
- *     exp by scaling and squaring.
+ *     exp by scaling and squaring. The step is safeguarded: when W o exp(u) has a larger MSSD than W, u is halved
+ *     (at most MaximumStepHalvings times; if no step lowers the MSSD, W is kept), so the MSSD never increases. The
+ *     paper's fixed beta gives a fixed step length per unit force, which overshoots and oscillates once the force of
+ *     a strongly deformed region grows (circle to leaf). The MSSD of an accepted step is the next iteration's force
+ *     evaluation, so only rejected steps cost extra. MaximumStepHalvings = 0 is the paper's plain iteration.
+ * The force uses the gradient of the warped moving image by default (ForceGradient, see DensityFieldFilter).
  * Inputs: FixedImage, MovingImage (any grid: sampled through physical space), optional FixedMask (region of
  * interest on the fixed grid), optional StaticMesh (physical
  * itk::Mesh of triangles for MeshMode Static). Output 0: the transform (DisplacementFieldTransform, decorated),
@@ -100,7 +105,8 @@ public:
     double       total;      // mssd + beta * elastic
     size_t       nodes;
     size_t       sweeps;     // CVT sweeps of this iteration (dynamic mode)
-    double       maxUpdate;  // largest update displacement (pixels)
+    double       maxUpdate;  // largest update displacement (pixels) of the accepted step
+    double       stepScale;  // fraction of the full step K^-1 f / beta taken (1, 1/2, ...; 0: no step lowered the MSSD)
   };
   /** Seconds per stage, summed over iterations (the breakdown of paper Table 1). */
   struct Timing
@@ -140,9 +146,18 @@ public:
   /** beta R / D at the first iteration (paper 5.1: 0.02). */
   itkSetClampMacro(EnergyRatio, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());
   itkGetConstMacro(EnergyRatio, double);
+  /** Largest number of times an update is halved because it would raise the MSSD (default 5; 0: no safeguard, every
+   * full step is taken, as in the paper). */
+  itkSetClampMacro(MaximumStepHalvings, unsigned int, 0, 30);
+  itkGetConstMacro(MaximumStepHalvings, unsigned int);
   /** alpha = AlphaFactor x mean |f|^2 (paper 5.1: 0.1). */
   itkSetClampMacro(AlphaFactor, double, 0.0, NumericTraits<double>::max());
   itkGetConstMacro(AlphaFactor, double);
+  /** Gradient in the force (DensityFieldFilter): WarpedMoving (default, the derivative for the compositional update)
+   * or MappedMoving (a literal reading of paper Eq. 5). */
+  using ForceGradientEnum = DynamicMeshRegistrationEnums::ForceGradient;
+  itkSetEnumMacro(ForceGradient, ForceGradientEnum);
+  itkGetEnumMacro(ForceGradient, ForceGradientEnum);
   /** CVT stopping tolerance (paper 5.1: 0). */
   itkSetClampMacro(CVTEpsilon, double, 0.0, 1.0);
   itkGetConstMacro(CVTEpsilon, double);
@@ -257,6 +272,8 @@ private:
   double        m_Mu{ 1.0 };
   double        m_EnergyRatio{ 0.02 };
   double        m_AlphaFactor{ 0.1 };
+  ForceGradientEnum m_ForceGradient{ ForceGradientEnum::WarpedMoving };
+  unsigned int      m_MaximumStepHalvings{ 5 };
   double        m_CVTEpsilon{ 0.0 };
   SizeValueType m_MaximumNumberOfSweeps{ 1000 };
   unsigned int  m_ReinitializationInterval{ 0 };

@@ -222,6 +222,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     this->SetSolverMesh(m_StaticSimplexMesh);
   }
 
+  bool forceIsCurrent = false; // the density filter already holds the force at the current W (accepted step)
   for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
   {
     if (this->GetAbortGenerateData())
@@ -234,8 +235,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
     // 1. force and density of T vs S o W
     auto t0 = Clock::now();
-    field->Modified();
-    m_DensityFilter->Update();
+    if (!forceIsCurrent)
+    {
+      field->Modified();
+      m_DensityFilter->Update();
+    }
+    forceIsCurrent = false;
     record.mssd = m_DensityFilter->GetMSSD() * dV;
     record.ssd = m_DensityFilter->GetSSD() * dV;
     m_Timing.registration += seconds(t0, Clock::now());
@@ -300,12 +305,38 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     record.elastic = m_Solver->ElasticEnergy(nodalW);
     record.total = record.mssd + m_Beta * record.elastic;
 
-    bary.Interpolate(nodalU, 1.0 / m_Beta, update.data(), threader); // u = K^-1 f / beta at every pixel
-    record.maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
-    dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
-    dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader); // W <- W o exp(u)
-    w.swap(update);
-    this->WriteGridFieldToImage(w, field);
+    // W <- W o exp(s u), u = K^-1 f / beta at every pixel; s = 1, halved while the step would raise the MSSD
+    double scale = 1.0;
+    for (unsigned int halving = 0;; ++halving, scale *= 0.5)
+    {
+      bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
+      const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
+      dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
+      dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader); // candidate in update
+      this->WriteGridFieldToImage(update, field);
+      bool accept = true;
+      if (m_MaximumStepHalvings > 0)
+      {
+        // the force at the candidate is the next iteration's force: only rejected steps cost an evaluation
+        field->Modified();
+        m_DensityFilter->Update();
+        accept = m_DensityFilter->GetMSSD() * dV <= record.mssd;
+      }
+      if (accept)
+      {
+        w.swap(update);
+        record.maxUpdate = maxUpdate;
+        record.stepScale = scale;
+        forceIsCurrent = m_MaximumStepHalvings > 0;
+        break;
+      }
+      if (halving == m_MaximumStepHalvings)
+      {
+        this->WriteGridFieldToImage(w, field); // no step lowers the MSSD: keep W
+        record.stepScale = 0.0;
+        break;
+      }
+    }
     m_Timing.registration += seconds(t0, Clock::now());
 
     m_History.push_back(record);
@@ -315,8 +346,11 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
   // final similarity with the final field
   auto t0 = Clock::now();
-  field->Modified();
-  m_DensityFilter->Update();
+  if (!forceIsCurrent)
+  {
+    field->Modified();
+    m_DensityFilter->Update();
+  }
   m_FinalSSD = m_DensityFilter->GetSSD() * dV;
   m_FinalMSSD = m_DensityFilter->GetMSSD() * dV;
   m_Timing.registration += seconds(t0, Clock::now());
@@ -354,6 +388,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_DensityFilter->ComputeForceFieldOff(); // the registration reads the grid-frame force
   m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
   m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
+  m_DensityFilter->SetForceGradient(m_ForceGradient);
   m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
   m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
   m_CVTFilter->SetEpsilon(m_CVTEpsilon);
@@ -628,6 +663,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     this->SetSolverMesh(m_StaticSimplexMesh);
   }
 
+  const bool                 warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
+  bool                       forceIsCurrent = false;
+  dmr::cuda::ForceStatistics statistics;
   for (unsigned int it = 1; it <= m_NumberOfIterations; ++it)
   {
     if (this->GetAbortGenerateData())
@@ -638,10 +676,13 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     IterationRecord record{};
     record.iteration = it;
 
-    // 1. force and density of T vs S o W, on the device
+    // 1. force and density of T vs S o W, on the device (already there after an accepted, checked step)
     t0 = Clock::now();
-    dmr::cuda::ForceStatistics statistics;
-    dmr::ThrowOnError(context.ComputeForce(statistics), "force");
+    if (!forceIsCurrent)
+    {
+      dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "force");
+    }
+    forceIsCurrent = false;
     if (statistics.inside == 0)
     {
       itkExceptionMacro("the fixed mask is empty: no pixel to register");
@@ -733,8 +774,33 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.SampleFieldAtNodes(nodalW.data()), "nodal sampling");
     record.elastic = m_Solver->ElasticEnergy(nodalW);
     record.total = record.mssd + m_Beta * record.elastic;
-    unsigned int squarings = 0;
-    dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), 1.0 / m_Beta, record.maxUpdate, squarings), "update");
+    // W <- W o exp(s u), s halved while the step would raise the MSSD (as the CPU loop)
+    double scale = 1.0;
+    for (unsigned int halving = 0;; ++halving, scale *= 0.5)
+    {
+      unsigned int squarings = 0;
+      double       maxUpdate = 0.0;
+      dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), scale / m_Beta, maxUpdate, squarings), "update");
+      bool accept = true;
+      if (m_MaximumStepHalvings > 0)
+      {
+        dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "force");
+        accept = statistics.mssd * dV <= record.mssd;
+      }
+      if (accept)
+      {
+        record.maxUpdate = maxUpdate;
+        record.stepScale = scale;
+        forceIsCurrent = m_MaximumStepHalvings > 0;
+        break;
+      }
+      dmr::ThrowOnError(context.RevertUpdate(), "update");
+      if (halving == m_MaximumStepHalvings)
+      {
+        record.stepScale = 0.0; // no step lowers the MSSD: keep W
+        break;
+      }
+    }
     m_Timing.registration += seconds(t0, Clock::now());
 
     m_History.push_back(record);
@@ -744,8 +810,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
 
   // final similarity, and the field back to the host (the only full-volume download of the run)
   t0 = Clock::now();
-  dmr::cuda::ForceStatistics statistics;
-  dmr::ThrowOnError(context.ComputeForce(statistics), "final force");
+  if (!forceIsCurrent)
+  {
+    dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "final force");
+  }
   m_FinalSSD = statistics.ssd * dV;
   m_FinalMSSD = statistics.mssd * dV;
   {
@@ -775,6 +843,8 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "Mu: " << m_Mu << std::endl;
   os << indent << "EnergyRatio: " << m_EnergyRatio << std::endl;
   os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
+  os << indent << "ForceGradient: " << m_ForceGradient << std::endl;
+  os << indent << "MaximumStepHalvings: " << m_MaximumStepHalvings << std::endl;
   os << indent << "CVTEpsilon: " << m_CVTEpsilon << std::endl;
   os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
   os << indent << "ReinitializationInterval: " << m_ReinitializationInterval << std::endl;

@@ -44,7 +44,12 @@ RegistrationContext::Initialize(unsigned int, const size_t *, const double *, co
   return Unavailable();
 }
 Status
-RegistrationContext::ComputeForce(ForceStatistics &)
+RegistrationContext::ComputeForce(ForceStatistics &, bool)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::RevertUpdate()
 {
   return Unavailable();
 }
