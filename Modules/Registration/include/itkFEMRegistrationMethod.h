@@ -256,6 +256,14 @@ private:
    * beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
   bool
   SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd);
+  /** The step safeguard, one rule for both back-ends: tries W o exp(s u) for s = 1, 1/2, ... while the candidate's
+   * MSSD is above record.mssd (at most MaximumStepHalvings halvings; none checked when it is 0). apply(s) makes the
+   * candidate for s and returns its largest update (pixels); candidateMSSD() evaluates the force at the candidate and
+   * returns its MSSD (x pixel volume); reject() drops the candidate. Sets record.maxUpdate and record.stepScale (0:
+   * no step taken, W unchanged). Returns true when the force at the new W has been evaluated (the next iteration's). */
+  template <typename TApply, typename TCandidateMSSD, typename TReject>
+  bool
+  SafeguardedStep(IterationRecord & record, TApply && apply, TCandidateMSSD && candidateMSSD, TReject && reject) const;
   /** Assembles the stiffness of a new mesh (timed as FEM solve, part of registration). */
   void
   SetSolverMesh(const SimplexMeshType & mesh);

@@ -305,37 +305,30 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     record.elastic = m_Solver->ElasticEnergy(nodalW);
     record.total = record.mssd + m_Beta * record.elastic;
 
-    // W <- W o exp(s u), u = K^-1 f / beta at every pixel; s = 1, halved while the step would raise the MSSD
-    double scale = 1.0;
-    for (unsigned int halving = 0;; ++halving, scale *= 0.5)
-    {
-      bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
-      const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
-      dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
-      dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader); // candidate in update
-      this->WriteGridFieldToImage(update, field);
-      bool accept = true;
-      if (m_MaximumStepHalvings > 0)
-      {
-        // the force at the candidate is the next iteration's force: only rejected steps cost an evaluation
+    // W <- W o exp(s u), u = K^-1 f / beta at every pixel; the candidate is made in `update`
+    forceIsCurrent = this->SafeguardedStep(
+      record,
+      [&](double scale) {
+        bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
+        const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
+        dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
+        dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader);
+        this->WriteGridFieldToImage(update, field);
+        return maxUpdate;
+      },
+      [&] {
         field->Modified();
         m_DensityFilter->Update();
-        accept = m_DensityFilter->GetMSSD() * dV <= record.mssd;
-      }
-      if (accept)
-      {
-        w.swap(update);
-        record.maxUpdate = maxUpdate;
-        record.stepScale = scale;
-        forceIsCurrent = m_MaximumStepHalvings > 0;
-        break;
-      }
-      if (halving == m_MaximumStepHalvings)
-      {
-        this->WriteGridFieldToImage(w, field); // no step lowers the MSSD: keep W
-        record.stepScale = 0.0;
-        break;
-      }
+        return m_DensityFilter->GetMSSD() * dV;
+      },
+      [] {}); // w still holds W
+    if (record.stepScale > 0.0)
+    {
+      w.swap(update);
+    }
+    else
+    {
+      this->WriteGridFieldToImage(w, field); // no step lowers the MSSD: keep W
     }
     m_Timing.registration += seconds(t0, Clock::now());
 
@@ -429,6 +422,34 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
     m_Beta = fKf / (2.0 * m_EnergyRatio * mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
   }
   return true;
+}
+
+template <typename TF, typename TM, typename TD>
+template <typename TApply, typename TCandidateMSSD, typename TReject>
+bool
+FEMRegistrationMethod<TF, TM, TD>::SafeguardedStep(IterationRecord & record,
+                                                   TApply &&         apply,
+                                                   TCandidateMSSD && candidateMSSD,
+                                                   TReject &&        reject) const
+{
+  double scale = 1.0;
+  for (unsigned int halving = 0;; ++halving, scale *= 0.5)
+  {
+    const double maxUpdate = apply(scale);
+    // the force at an accepted candidate is the next iteration's force: only rejected steps cost an evaluation
+    if (m_MaximumStepHalvings == 0 || candidateMSSD() <= record.mssd)
+    {
+      record.maxUpdate = maxUpdate;
+      record.stepScale = scale;
+      return m_MaximumStepHalvings > 0;
+    }
+    reject();
+    if (halving == m_MaximumStepHalvings)
+    {
+      record.stepScale = 0.0; // no step lowers the MSSD: keep W
+      return false;
+    }
+  }
 }
 
 template <typename TF, typename TM, typename TD>
@@ -774,33 +795,20 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.SampleFieldAtNodes(nodalW.data()), "nodal sampling");
     record.elastic = m_Solver->ElasticEnergy(nodalW);
     record.total = record.mssd + m_Beta * record.elastic;
-    // W <- W o exp(s u), s halved while the step would raise the MSSD (as the CPU loop)
-    double scale = 1.0;
-    for (unsigned int halving = 0;; ++halving, scale *= 0.5)
-    {
-      unsigned int squarings = 0;
-      double       maxUpdate = 0.0;
-      dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), scale / m_Beta, maxUpdate, squarings), "update");
-      bool accept = true;
-      if (m_MaximumStepHalvings > 0)
-      {
+    // W <- W o exp(s u) on the device; a rejected candidate is reverted
+    forceIsCurrent = this->SafeguardedStep(
+      record,
+      [&](double scale) {
+        unsigned int squarings = 0;
+        double       maxUpdate = 0.0;
+        dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), scale / m_Beta, maxUpdate, squarings), "update");
+        return maxUpdate;
+      },
+      [&] {
         dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "force");
-        accept = statistics.mssd * dV <= record.mssd;
-      }
-      if (accept)
-      {
-        record.maxUpdate = maxUpdate;
-        record.stepScale = scale;
-        forceIsCurrent = m_MaximumStepHalvings > 0;
-        break;
-      }
-      dmr::ThrowOnError(context.RevertUpdate(), "update");
-      if (halving == m_MaximumStepHalvings)
-      {
-        record.stepScale = 0.0; // no step lowers the MSSD: keep W
-        break;
-      }
-    }
+        return statistics.mssd * dV;
+      },
+      [&] { dmr::ThrowOnError(context.RevertUpdate(), "update"); });
     m_Timing.registration += seconds(t0, Clock::now());
 
     m_History.push_back(record);
