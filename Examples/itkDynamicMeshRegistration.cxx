@@ -82,6 +82,7 @@ struct Options
   double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
   std::string  forceGradient{ "warped" };
   long         stepHalvings{ 5 };
+  long         deviceSolveMinDofs{ 300 };
   std::string  fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
   bool         landmarksInMM{ false };
   bool         window{ false };
@@ -109,6 +110,8 @@ const char * const Usage =
   "  --cvt-epsilon E        stop the CVT sweeps when a sweep lowers the energy by at most E x energy (default 0)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
+  "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
+  "                         unknowns, on the CPU otherwise (default 300; 0: always on the GPU)\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
   "  --fixed-mask FILE      region of interest on the fixed image (non-zero = inside, e.g. the lungs): forces,\n"
   "                         density and SSD only inside it; resampled (nearest) onto the fixed grid if needed\n"
@@ -218,6 +221,8 @@ ParseArguments(int argc, char * argv[])
       opt.alphaFactor = ParseReal(a, v);
     else if (a == "--step-halvings")
       opt.stepHalvings = ParseInteger(a, v);
+    else if (a == "--device-solve-min-dofs")
+      opt.deviceSolveMinDofs = ParseInteger(a, v);
     else if (a == "--force-gradient")
       opt.forceGradient = v;
     else if (a == "--fixed-mask")
@@ -256,6 +261,8 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--lambda must be >= 0 and --mu > 0");
   if (opt.energyRatio <= 0 || opt.alphaFactor <= 0)
     throw UsageError("--energy-ratio and --alpha-factor must be positive");
+  if (opt.deviceSolveMinDofs < 0)
+    throw UsageError("--device-solve-min-dofs must be 0 or more");
   if (opt.stepHalvings < 0 || opt.stepHalvings > 30)
     throw UsageError("--step-halvings must be between 0 and 30");
   if (opt.forceGradient != "warped" && opt.forceGradient != "mapped")
@@ -555,6 +562,7 @@ Run(const Options & opt)
   method->SetEnergyRatio(opt.energyRatio);
   method->SetAlphaFactor(opt.alphaFactor);
   method->SetMaximumStepHalvings(static_cast<unsigned int>(opt.stepHalvings));
+  method->SetDeviceSolverMinimumDegreesOfFreedom(static_cast<itk::SizeValueType>(opt.deviceSolveMinDofs));
   method->SetForceGradient(opt.forceGradient == "mapped" ? itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving
                                                          : itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving);
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
@@ -654,6 +662,12 @@ Run(const Options & opt)
     throw std::runtime_error(std::string("registration failed: ") + e.GetDescription());
   }
   const auto & history = method->GetHistory();
+  size_t       deviceSolves = 0, cgProducts = 0;
+  for (const auto & r : history)
+  {
+    deviceSolves += r.deviceSolve ? 1 : 0;
+    cgProducts += r.solverIterations;
+  }
   if (!history.empty() && (meshFiles.empty() || meshFiles.back().first != history.back().iteration))
   {
     saveMesh(history.back().iteration); // stopped early: keep the last mesh
@@ -760,6 +774,9 @@ Run(const Options & opt)
        << "  \"alpha_factor\": " << opt.alphaFactor << ",\n"
        << "  \"force_gradient\": \"" << opt.forceGradient << "\",\n"
        << "  \"step_halvings\": " << opt.stepHalvings << ",\n"
+       << "  \"device_solve_min_dofs\": " << opt.deviceSolveMinDofs << ",\n"
+       << "  \"device_solves\": " << deviceSolves << ",\n"
+       << "  \"cg_products\": " << cgProducts << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"
        << "  \"cvt_max_sweeps\": " << opt.cvtMaxSweeps << ",\n"
        << "  \"cvt_epsilon\": " << opt.cvtEpsilon << ",\n"

@@ -133,12 +133,20 @@ RunsAgree(MeshMode     mode,
           unsigned int iterations,
           unsigned int n,
           double       energyRatio = 0.1,
-          size_t *     halvedSteps = nullptr)
+          size_t *     halvedSteps = nullptr,
+          bool         solveOnDevice = false)
 {
   auto cpu = Registration<D>(Backend::CPU, mode, nodes, iterations, n, energyRatio);
   auto gpu = Registration<D>(Backend::CUDA, mode, nodes, iterations, n, energyRatio);
+  // every elastic system on the device, or (the default threshold, these meshes are small) every one on the CPU
+  gpu->SetDeviceSolverMinimumDegreesOfFreedom(solveOnDevice ? 0 : 1000000);
   cpu->Update();
   gpu->Update();
+  for (const auto & r : gpu->GetHistory())
+  {
+    EXPECT_EQ(r.deviceSolve, solveOnDevice) << "iteration " << r.iteration;
+    EXPECT_GT(r.solverIterations, 0u);
+  }
   EXPECT_EQ(cpu->GetBackendUsed(), Backend::CPU);
   ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
   ASSERT_EQ(gpu->GetHistory().size(), cpu->GetHistory().size());
@@ -161,6 +169,9 @@ RunsAgree(MeshMode     mode,
     EXPECT_EQ(gpu->GetHistory()[i].nodes, cpu->GetHistory()[i].nodes) << "iteration " << i + 1;
     EXPECT_NEAR(gpu->GetHistory()[i].mssd, cpu->GetHistory()[i].mssd, 1e-6 * cpu->GetHistory()[i].mssd);
     EXPECT_EQ(gpu->GetHistory()[i].stepScale, cpu->GetHistory()[i].stepScale) << "iteration " << i + 1;
+    EXPECT_NEAR(gpu->GetHistory()[i].elastic, cpu->GetHistory()[i].elastic,
+                1e-6 * std::abs(cpu->GetHistory()[i].elastic) + 1e-12)
+      << "iteration " << i + 1;
   }
   size_t halved = 0;
   for (const auto & r : cpu->GetHistory())
@@ -185,6 +196,77 @@ RunsAgree(MeshMode     mode,
   EXPECT_LE(t.initialTessellation + t.tessellationOptimization + t.meshConstruction + t.barycentric + t.registration,
             t.total);
   EXPECT_LE(t.femSolve, t.registration);
+}
+
+/** The device elastic solve (matrix-free CG) against LinearElasticFEMSolver on the same mesh: the solution, u = 0 on
+ * fixed nodes, the number of CG products, u^T K u / 2 over all nodes, and the errors. The context holds the mesh. */
+template <unsigned int D>
+void
+ElasticSolveAgrees(itk::dmr::cuda::RegistrationContext & context, const itk::dmr::SimplexMesh<D> & mesh)
+{
+  const double lambda = 0.7, mu = 1.3;
+  const size_t ndof = mesh.NumberOfNodes() * D;
+  std::vector<double> f(ndof), uGpu(ndof, 7.0), uCpu;
+  for (size_t i = 0; i < ndof; ++i)
+  {
+    f[i] = std::sin(0.37 * static_cast<double>(i) + 0.2) + 0.3 * std::cos(1.9 * static_cast<double>(i));
+  }
+  size_t iterations = 0;
+  bool   converged = false;
+  EXPECT_FALSE(context.SolveElasticity(f.data(), uGpu.data(), 1e-12, 1000, iterations, converged).Ok())
+    << "a solve before SetElasticity is refused";
+  ASSERT_TRUE(context.SetElasticity(lambda, mu, mesh.fixed.data()).Ok());
+  ASSERT_TRUE(context.SolveElasticity(f.data(), uGpu.data(), 1e-12, 4 * ndof + 1000, iterations, converged).Ok());
+  EXPECT_TRUE(converged);
+
+  auto solver = itk::LinearElasticFEMSolver<D>::New();
+  solver->SetLambda(lambda);
+  solver->SetMu(mu);
+  solver->SetMesh(mesh);
+  solver->Solve(f, uCpu);
+  double largest = 0.0, largestDiff = 0.0;
+  size_t fixedNodes = 0;
+  for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      largest = std::max(largest, std::abs(uCpu[a * D + k]));
+      largestDiff = std::max(largestDiff, std::abs(uCpu[a * D + k] - uGpu[a * D + k]));
+      if (mesh.fixed[a])
+      {
+        EXPECT_EQ(uGpu[a * D + k], 0.0) << "fixed node " << a;
+      }
+    }
+    fixedNodes += mesh.fixed[a] ? 1 : 0;
+  }
+  std::cout << D << "D elastic solve, " << mesh.NumberOfNodes() << " nodes (" << fixedNodes << " fixed): GPU "
+            << iterations << " CG products, CPU " << solver->GetLastIterations() << " iterations; max |u| " << largest
+            << ", max difference " << largestDiff << std::endl;
+  EXPECT_GT(fixedNodes, 0u);
+  EXPECT_GT(largest, 0.0);
+  EXPECT_LE(largestDiff, 1e-8 * largest);
+  // the same algorithm and stopping rule: Eigen counts the products before the converging one
+  EXPECT_NEAR(static_cast<double>(iterations), static_cast<double>(solver->GetLastIterations() + 1),
+              std::max(3.0, 0.1 * static_cast<double>(solver->GetLastIterations())));
+
+  // u^T K u / 2 over all nodes, fixed ones included (f is not zero there)
+  double energy = 0.0;
+  ASSERT_TRUE(context.ElasticEnergy(f.data(), energy).Ok());
+  const double cpuEnergy = solver->ElasticEnergy(f);
+  EXPECT_GT(cpuEnergy, 0.0);
+  EXPECT_NEAR(energy, cpuEnergy, 1e-10 * cpuEnergy);
+
+  // too few products: reported as not converged (the registration then falls back to the CPU solver)
+  ASSERT_TRUE(context.SolveElasticity(f.data(), uGpu.data(), 1e-12, 3, iterations, converged).Ok());
+  EXPECT_FALSE(converged);
+  EXPECT_EQ(iterations, 3u);
+  // a zero load gives u = 0 at once
+  std::vector<double> zero(ndof, 0.0);
+  ASSERT_TRUE(context.SolveElasticity(zero.data(), uGpu.data(), 1e-12, 100, iterations, converged).Ok());
+  EXPECT_TRUE(converged);
+  EXPECT_EQ(iterations, 0u);
+  EXPECT_EQ(uGpu, zero);
+  EXPECT_FALSE(context.SetElasticity(lambda, 0.0, mesh.fixed.data()).Ok()) << "mu = 0 is refused";
 }
 
 /** The pieces one by one on a mesh from the CPU run: force (vs DensityFieldFilter), owner (vs BarycentricMap,
@@ -253,6 +335,8 @@ StagesAgree(unsigned int nodes, unsigned int n)
   }
   EXPECT_GT(maxNodal, 0.0);
   EXPECT_LE(maxNodalDiff, 1e-9 * maxNodal);
+
+  ElasticSolveAgrees<D>(context, mesh);
 
   // RevertUpdate (the rejected step of the safeguarded iteration) restores w bit for bit, once
   std::vector<float> before(grid.numberOfPixels * D), after(grid.numberOfPixels * D);
@@ -363,6 +447,25 @@ TEST(CudaRegistration, SafeguardedStepsMatchCPU2D)
   size_t halved = 0;
   RunsAgree<2>(MeshMode::Dynamic, 40, 40, 96, 3.0, &halved);
   EXPECT_GT(halved, 5u);
+}
+
+// the elastic systems solved on the device (matrix-free CG) instead of the CPU: the same runs
+TEST(CudaRegistration, DeviceSolveRunMatchesCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<2>(MeshMode::Dynamic, 40, 60, 96, 0.1, nullptr, true);
+}
+
+TEST(CudaRegistration, DeviceSolveRunMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<3>(MeshMode::Dynamic, 150, 30, 40, 0.1, nullptr, true);
+}
+
+TEST(CudaRegistration, DeviceSolveRegularMeshRunMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  RunsAgree<3>(MeshMode::Regular, 125, 30, 40, 0.1, nullptr, true);
 }
 
 TEST(CudaRegistration, RegularMeshRunMatchesCPU2D)

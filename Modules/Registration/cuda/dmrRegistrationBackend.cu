@@ -26,6 +26,8 @@
 #include <climits>
 #include <cmath>
 #include <cstring>
+#include <limits>
+#include <vector>
 
 namespace itk
 {
@@ -658,6 +660,310 @@ FillKernel(int * data, long long n, int value)
   }
 }
 
+// ---- linear elasticity, matrix-free (LinearElasticFEMSolver's system) --------------------------------------------
+// Per element e: the gradients g_a (a = 0..D) of the barycentric shape functions and the volume V_e. For a nodal
+// vector p, K p at node a is sum_e V_e sigma_e g_a with G = sum_b p_b (x) g_b and sigma = lambda tr(G) I + mu (G + G^T),
+// which is the element matrix V (lambda g_a,i g_b,j + mu g_a,j g_b,i + mu delta_ij g_a.g_b) applied to p.
+constexpr int CGThreads = 256;
+
+template <int D>
+__device__ constexpr int
+GeometryStride()
+{
+  return (D + 1) * D + 1;
+}
+
+template <int D>
+__global__ void
+ElementGeometryKernel(long long ne, const double * nodes, const int * elements, const double * affine, double * geometry)
+{
+  for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
+       e += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    const double * A = affine + e * (D * D + D); // inverse edge matrix: row r = grad phi_{r+1}
+    double *       g = geometry + e * GeometryStride<D>();
+    for (int k = 0; k < D; ++k)
+    {
+      g[k] = 0.0;
+    }
+    for (int a = 1; a <= D; ++a)
+    {
+      for (int k = 0; k < D; ++k)
+      {
+        g[a * D + k] = A[(a - 1) * D + k];
+        g[k] -= g[a * D + k];
+      }
+    }
+    const int * v = elements + e * (D + 1);
+    double      m[D][D];
+    for (int r = 0; r < D; ++r)
+    {
+      for (int c = 0; c < D; ++c)
+      {
+        m[r][c] = nodes[v[c + 1] * D + r] - nodes[v[0] * D + r];
+      }
+    }
+    double det;
+    if (D == 2)
+    {
+      det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+    }
+    else
+    {
+      det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+            m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    }
+    g[(D + 1) * D] = fabs(det) / (D == 2 ? 2.0 : 6.0);
+  }
+}
+
+/** Inverse diagonal of K (Eigen's DiagonalPreconditioner: 1 where the diagonal is 0), 0 on fixed nodes. */
+template <int D>
+__global__ void
+ElasticDiagonalKernel(long long nn, const int * start, const int * incidence, const double * geometry,
+                      const uint8_t * fixed, double lambda, double mu, double * inverseDiagonal)
+{
+  for (long long a = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; a < nn;
+       a += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double d[D] = {};
+    for (int i = start[a]; i < start[a + 1]; ++i)
+    {
+      const int      e = incidence[i] / (D + 1), slot = incidence[i] % (D + 1);
+      const double * g = geometry + static_cast<long long>(e) * GeometryStride<D>();
+      const double   V = g[(D + 1) * D];
+      double         gg = 0.0;
+      for (int k = 0; k < D; ++k)
+      {
+        gg += g[slot * D + k] * g[slot * D + k];
+      }
+      for (int k = 0; k < D; ++k)
+      {
+        d[k] += V * ((lambda + mu) * g[slot * D + k] * g[slot * D + k] + mu * gg);
+      }
+    }
+    for (int k = 0; k < D; ++k)
+    {
+      inverseDiagonal[a * D + k] = fixed[a] ? 0.0 : (d[k] != 0.0 ? 1.0 / d[k] : 1.0);
+    }
+  }
+}
+
+/** Every block sums the same partials in the same order: the same total everywhere. */
+__device__ double
+SumPartials(const double * partials, int count, double * shared)
+{
+  double v = 0.0;
+  for (int i = threadIdx.x; i < count; i += blockDim.x)
+  {
+    v += partials[i];
+  }
+  const double total = BlockSum(v, shared);
+  __syncthreads();
+  if (threadIdx.x == 0)
+  {
+    shared[0] = total;
+  }
+  __syncthreads();
+  return shared[0]; // the next BlockSum synchronises before it writes shared again
+}
+
+/** S_e = V_e sigma_e(G) with G = sum_b p_b (x) g_b (D x D, row-major). */
+template <int D>
+__global__ void
+ElementStressKernel(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
+                    double mu, const int * done, double * stress)
+{
+  if (done && *done)
+  {
+    return;
+  }
+  for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
+       e += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    const double * g = geometry + e * GeometryStride<D>();
+    const int *    v = elements + e * (D + 1);
+    double         G[D][D] = {};
+    for (int b = 0; b <= D; ++b)
+    {
+      for (int i = 0; i < D; ++i)
+      {
+        const double pb = p[static_cast<long long>(v[b]) * D + i];
+        for (int j = 0; j < D; ++j)
+        {
+          G[i][j] += pb * g[b * D + j];
+        }
+      }
+    }
+    double trace = 0.0;
+    for (int i = 0; i < D; ++i)
+    {
+      trace += G[i][i];
+    }
+    const double V = g[(D + 1) * D];
+    for (int i = 0; i < D; ++i)
+    {
+      for (int j = 0; j < D; ++j)
+      {
+        stress[e * D * D + i * D + j] = V * ((i == j ? lambda * trace : 0.0) + mu * (G[i][j] + G[j][i]));
+      }
+    }
+  }
+}
+
+/** q = K p at every node (0 on fixed nodes when fixed is given), and per block the partial sum of p . q. One warp per
+ * node: lane l takes the node's incidences l, l + 32, ... (element order) and the warp sums them by a fixed shuffle
+ * tree, so the result is deterministic. */
+template <int D>
+__global__ void
+NodeApplyKernel(long long nn, const int * start, const int * incidence, const double * geometry,
+                const double * stress, const uint8_t * fixed, const double * p, const int * done, double * q,
+                double * partials)
+{
+  __shared__ double shared[CGThreads];
+  if (done && *done)
+  {
+    return;
+  }
+  const int       lane = threadIdx.x & 31;
+  const long long a = (blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x) >> 5;
+  double          y[D] = {};
+  if (a < nn && !(fixed && fixed[a]))
+  {
+    for (int i = start[a] + lane; i < start[a + 1]; i += 32)
+    {
+      const int      e = incidence[i] / (D + 1), slot = incidence[i] % (D + 1);
+      const double * g = geometry + static_cast<long long>(e) * GeometryStride<D>() + slot * D;
+      const double * S = stress + static_cast<long long>(e) * D * D;
+      for (int r = 0; r < D; ++r)
+      {
+        for (int c = 0; c < D; ++c)
+        {
+          y[r] += S[r * D + c] * g[c];
+        }
+      }
+    }
+  }
+  for (int o = 16; o > 0; o >>= 1)
+  {
+    for (int k = 0; k < D; ++k)
+    {
+      y[k] += __shfl_down_sync(0xffffffffu, y[k], o);
+    }
+  }
+  double pq = 0.0;
+  if (lane == 0 && a < nn)
+  {
+    for (int k = 0; k < D; ++k)
+    {
+      q[a * D + k] = y[k];
+      pq += p[a * D + k] * y[k];
+    }
+  }
+  const double total = BlockSum(pq, shared);
+  if (threadIdx.x == 0)
+  {
+    partials[blockIdx.x] = total;
+  }
+}
+
+// CG state: scalars[0..1] = r.z by iteration parity, scalars[2] = |r|^2 of the last step; state[0] = converged flag,
+// state[1] = products taken.
+/** x += alpha p, r -= alpha q, z = M^-1 r with alpha = (r.z) / (p.q); per block partial sums of r.r and r.z. */
+__global__ void
+CGStepKernel(long long ndof, int parity, const double * pqPartials, int pqCount, const double * p, const double * q,
+             const double * inverseDiagonal, const double * scalars, const int * state, double * x, double * r,
+             double * z, double * rrPartials, double * rzPartials)
+{
+  __shared__ double shared[CGThreads];
+  if (state[0])
+  {
+    return;
+  }
+  const double    alpha = scalars[parity] / SumPartials(pqPartials, pqCount, shared);
+  const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
+  double          rr = 0.0, rz = 0.0;
+  if (i < ndof)
+  {
+    x[i] += alpha * p[i];
+    const double ri = r[i] - alpha * q[i];
+    r[i] = ri;
+    const double zi = inverseDiagonal[i] * ri;
+    z[i] = zi;
+    rr = ri * ri;
+    rz = ri * zi;
+  }
+  const double rrBlock = BlockSum(rr, shared);
+  const double rzBlock = BlockSum(rz, shared);
+  if (threadIdx.x == 0)
+  {
+    rrPartials[blockIdx.x] = rrBlock;
+    rzPartials[blockIdx.x] = rzBlock;
+  }
+}
+
+/** Stops when |r|^2 < threshold; otherwise p = z + beta p with beta = (r.z)_new / (r.z)_old. */
+__global__ void
+CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
+                  double threshold, const double * z, double * p, double * scalars, int * state)
+{
+  __shared__ double shared[CGThreads];
+  if (state[0])
+  {
+    return;
+  }
+  const double rr = SumPartials(rrPartials, count, shared);
+  const double rzNew = SumPartials(rzPartials, count, shared);
+  if (blockIdx.x == 0 && threadIdx.x == 0)
+  {
+    state[1] += 1;
+    scalars[2] = rr;
+    scalars[1 - parity] = rzNew;
+  }
+  if (rr < threshold)
+  {
+    if (blockIdx.x == 0 && threadIdx.x == 0)
+    {
+      state[0] = 1;
+    }
+    return;
+  }
+  const double    beta = rzNew / scalars[parity];
+  const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
+  if (i < ndof)
+  {
+    p[i] = z[i] + beta * p[i];
+  }
+}
+
+/** r = f (0 on fixed), x = 0, z = p = M^-1 r; partial sums of r.r and r.z. */
+__global__ void
+CGStartKernel(long long ndof, const double * f, const double * inverseDiagonal, const uint8_t * fixed, int dimension,
+              double * x, double * r, double * z, double * p, double * rrPartials, double * rzPartials)
+{
+  __shared__ double shared[CGThreads];
+  const long long   i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
+  double            rr = 0.0, rz = 0.0;
+  if (i < ndof)
+  {
+    const double ri = fixed[i / dimension] ? 0.0 : f[i];
+    const double zi = inverseDiagonal[i] * ri;
+    x[i] = 0.0;
+    r[i] = ri;
+    z[i] = zi;
+    p[i] = zi;
+    rr = ri * ri;
+    rz = ri * zi;
+  }
+  const double rrBlock = BlockSum(rr, shared);
+  const double rzBlock = BlockSum(rz, shared);
+  if (threadIdx.x == 0)
+  {
+    rrPartials[blockIdx.x] = rrBlock;
+    rzPartials[blockIdx.x] = rzBlock;
+  }
+}
+
 unsigned int
 GridBlocks(long long n)
 {
@@ -665,6 +971,37 @@ GridBlocks(long long n)
   const long long blocks = (n + Threads - 1) / Threads;
   return static_cast<unsigned int>(std::max<long long>(1, std::min<long long>(blocks, 65535LL * 8)));
 }
+
+/** The device mesh and element data the elastic operator reads. */
+struct ElasticOperator
+{
+  unsigned int   dimension;
+  long long      nodes, elements;
+  const int *    vertices;
+  const int *    start;
+  const int *    incidence;
+  const double * geometry;
+  double *       stress;
+  double         lambda, mu;
+
+  /** q = K p (fixed rows zero when fixed is given) and per node block the partial sums of p . q. */
+  void
+  Apply(const double * p, const uint8_t * fixed, const int * done, double * q, double * partials) const
+  {
+    const unsigned nodeBlocks = Blocks(static_cast<size_t>(nodes) * 32, CGThreads);
+    if (dimension == 2)
+    {
+      ElementStressKernel<2><<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
+      NodeApplyKernel<2><<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
+    }
+    else
+    {
+      ElementStressKernel<3><<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
+      NodeApplyKernel<3><<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
+    }
+    CheckLaunch("NodeApplyKernel");
+  }
+};
 } // namespace
 
 struct RegistrationContext::Impl
@@ -688,7 +1025,22 @@ struct RegistrationContext::Impl
   DeviceBuffer<long long>          bounds;
   DeviceBuffer<int>                elements, incidenceStart, incidence;
   std::vector<int>                 hostStart, hostIncidence;
+  // linear elasticity (SetElasticity / SolveElasticity): element gradients and volumes, stresses, CG vectors
+  double                           lambda{ 0 }, mu{ 0 };
+  bool                             elasticityReady{ false };
+  DeviceBuffer<uint8_t>            fixedNodes;
+  DeviceBuffer<double>             geometry, stress, inverseDiagonal, cgX, cgR, cgZ, cgP, cgQ, cgPartials, cgScalars;
+  DeviceBuffer<int>                cgState;
   size_t                           allocated{ 0 }; // the largest Bytes() seen
+
+  ElasticOperator
+  Operator()
+  {
+    return ElasticOperator{ dimension,           static_cast<long long>(numberOfNodes), static_cast<long long>(numberOfElements),
+                            elements.Data(),     incidenceStart.Data(),                  incidence.Data(),
+                            geometry.Data(),     stress.Data(),                          lambda,
+                            mu };
+  }
 
   size_t
   Bytes() const
@@ -704,6 +1056,11 @@ struct RegistrationContext::Impl
     s += mask.Size() + (w.Size() + bufferA.Size() + bufferB.Size() + force.Size() + density.Size()) * sizeof(float);
     s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + partial.Size() + nodal.Size()) * sizeof(double);
     s += bounds.Size() * sizeof(long long) + (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
+    s += fixedNodes.Size() + cgState.Size() * sizeof(int);
+    for (const auto * b : { &geometry, &stress, &inverseDiagonal, &cgX, &cgR, &cgZ, &cgP, &cgQ, &cgPartials, &cgScalars })
+    {
+      s += b->Size() * sizeof(double);
+    }
     return s;
   }
 };
@@ -882,6 +1239,7 @@ RegistrationContext::SetMesh(const double *  nodes,
     }
     m.numberOfNodes = numberOfNodes;
     m.numberOfElements = numberOfElements;
+    m.elasticityReady = false;
     m.nodes.Upload(nodes, numberOfNodes * D);
     m.elements.Upload(elements, numberOfElements * (D + 1));
     m.affine.Upload(affine, numberOfElements * (D * D + D));
@@ -937,6 +1295,153 @@ RegistrationContext::SetMesh(const double *  nodes,
                       " is not covered by any element: the mesh does not cover the image domain");
     }
     m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+Status
+RegistrationContext::SetElasticity(double lambda, double mu, const uint8_t * fixed)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    if (m.numberOfElements == 0)
+    {
+      throw CudaError("SetElasticity() needs SetMesh() first");
+    }
+    if (!(lambda >= 0.0) || !(mu > 0.0))
+    {
+      throw CudaError("the elastic system needs lambda >= 0 and mu > 0");
+    }
+    const size_t    D = m.dimension;
+    const long long nn = static_cast<long long>(m.numberOfNodes);
+    const long long ne = static_cast<long long>(m.numberOfElements);
+    m.lambda = lambda;
+    m.mu = mu;
+    std::vector<uint8_t> flags(m.numberOfNodes, 0);
+    if (fixed)
+    {
+      std::copy(fixed, fixed + m.numberOfNodes, flags.begin());
+    }
+    m.fixedNodes.Upload(flags.data(), flags.size());
+    m.geometry.Reserve(m.numberOfElements * ((D + 1) * D + 1));
+    m.stress.Reserve(m.numberOfElements * D * D);
+    for (auto * b : { &m.inverseDiagonal, &m.cgX, &m.cgR, &m.cgZ, &m.cgP, &m.cgQ })
+    {
+      b->Reserve(m.numberOfNodes * D);
+    }
+    m.cgPartials.Reserve(static_cast<size_t>(Blocks(m.numberOfNodes * 32, CGThreads)) +
+                         2 * static_cast<size_t>(Blocks(m.numberOfNodes * D, CGThreads)));
+    m.cgScalars.Reserve(3);
+    m.cgState.Reserve(2);
+    const unsigned elementBlocks = GridBlocks(ne), nodeBlocks = GridBlocks(nn);
+    if (D == 2)
+    {
+      ElementGeometryKernel<2><<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
+      CheckLaunch("ElementGeometryKernel");
+      ElasticDiagonalKernel<2><<<nodeBlocks, Threads>>>(nn, m.incidenceStart.Data(), m.incidence.Data(), m.geometry.Data(), m.fixedNodes.Data(), lambda, mu, m.inverseDiagonal.Data());
+    }
+    else
+    {
+      ElementGeometryKernel<3><<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
+      CheckLaunch("ElementGeometryKernel");
+      ElasticDiagonalKernel<3><<<nodeBlocks, Threads>>>(nn, m.incidenceStart.Data(), m.incidence.Data(), m.geometry.Data(), m.fixedNodes.Data(), lambda, mu, m.inverseDiagonal.Data());
+    }
+    CheckLaunch("ElasticDiagonalKernel");
+    m.elasticityReady = true;
+    m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+
+Status
+RegistrationContext::SolveElasticity(const double * f,
+                                     double *       u,
+                                     double         tolerance,
+                                     size_t         maxIterations,
+                                     size_t &       iterations,
+                                     bool &         converged)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    if (!m.elasticityReady)
+    {
+      throw CudaError("SolveElasticity() needs SetElasticity() after the last SetMesh()");
+    }
+    const size_t    D = m.dimension;
+    const size_t    ndof = m.numberOfNodes * D;
+    const long long nd = static_cast<long long>(ndof);
+    const unsigned  dofBlocks = Blocks(ndof, CGThreads);
+    const unsigned  nodeBlocks = Blocks(m.numberOfNodes * 32, CGThreads);
+    double *        pqPartials = m.cgPartials.Data();
+    double *        rrPartials = pqPartials + nodeBlocks;
+    double *        rzPartials = rrPartials + dofBlocks;
+    m.cgQ.Upload(f, ndof); // f in q's buffer until the start kernel has read it
+    CGStartKernel<<<dofBlocks, CGThreads>>>(nd, m.cgQ.Data(), m.inverseDiagonal.Data(), m.fixedNodes.Data(), static_cast<int>(D), m.cgX.Data(), m.cgR.Data(), m.cgZ.Data(), m.cgP.Data(), rrPartials, rzPartials);
+    CheckLaunch("CGStartKernel");
+    std::vector<double> start(2 * dofBlocks);
+    Check(cudaMemcpy(start.data(), rrPartials, start.size() * sizeof(double), cudaMemcpyDeviceToHost), "CG start");
+    double rhsNorm2 = 0.0, rz = 0.0;
+    for (unsigned b = 0; b < dofBlocks; ++b)
+    {
+      rhsNorm2 += start[b];
+      rz += start[dofBlocks + b];
+    }
+    iterations = 0;
+    converged = true;
+    if (rhsNorm2 == 0.0)
+    {
+      std::fill(u, u + ndof, 0.0);
+      return;
+    }
+    const double threshold = std::max(tolerance * tolerance * rhsNorm2, std::numeric_limits<double>::min());
+    const double scalars[3] = { rz, 0.0, rhsNorm2 };
+    const int    state[2] = { 0, 0 };
+    Check(cudaMemcpy(m.cgScalars.Data(), scalars, sizeof(scalars), cudaMemcpyHostToDevice), "CG scalars");
+    Check(cudaMemcpy(m.cgState.Data(), state, sizeof(state), cudaMemcpyHostToDevice), "CG state");
+    // batches of products without a host round trip; the kernels of a converged solve return at once
+    constexpr size_t     Batch = 16;
+    const ElasticOperator op = m.Operator();
+    int              hostState[2] = { 0, 0 };
+    for (size_t k = 0; k < maxIterations && !hostState[0];)
+    {
+      const size_t end = std::min(maxIterations, k + Batch);
+      for (; k < end; ++k)
+      {
+        const int parity = static_cast<int>(k & 1);
+        op.Apply(m.cgP.Data(), m.fixedNodes.Data(), m.cgState.Data(), m.cgQ.Data(), pqPartials);
+        CGStepKernel<<<dofBlocks, CGThreads>>>(nd, parity, pqPartials, static_cast<int>(nodeBlocks), m.cgP.Data(), m.cgQ.Data(), m.inverseDiagonal.Data(), m.cgScalars.Data(), m.cgState.Data(), m.cgX.Data(), m.cgR.Data(), m.cgZ.Data(), rrPartials, rzPartials);
+        CGDirectionKernel<<<dofBlocks, CGThreads>>>(nd, parity, rrPartials, rzPartials, static_cast<int>(dofBlocks), threshold, m.cgZ.Data(), m.cgP.Data(), m.cgScalars.Data(), m.cgState.Data());
+      }
+      CheckLaunch("CG kernels");
+      Check(cudaMemcpy(hostState, m.cgState.Data(), sizeof(hostState), cudaMemcpyDeviceToHost), "CG state");
+    }
+    iterations = static_cast<size_t>(hostState[1]);
+    converged = hostState[0] != 0;
+    m.cgX.Download(u, ndof);
+  });
+}
+
+Status
+RegistrationContext::ElasticEnergy(const double * u, double & energy)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    if (!m.elasticityReady)
+    {
+      throw CudaError("ElasticEnergy() needs SetElasticity() after the last SetMesh()");
+    }
+    const size_t   ndof = m.numberOfNodes * m.dimension;
+    const unsigned nodeBlocks = Blocks(m.numberOfNodes * 32, CGThreads);
+    m.cgP.Upload(u, ndof);
+    m.Operator().Apply(m.cgP.Data(), nullptr, nullptr, m.cgQ.Data(), m.cgPartials.Data());
+    std::vector<double> partials(nodeBlocks);
+    Check(cudaMemcpy(partials.data(), m.cgPartials.Data(), partials.size() * sizeof(double), cudaMemcpyDeviceToHost),
+          "elastic energy");
+    double sum = 0.0;
+    for (const double v : partials)
+    {
+      sum += v;
+    }
+    energy = 0.5 * sum;
   });
 }
 

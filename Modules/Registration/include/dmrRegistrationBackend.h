@@ -108,6 +108,21 @@ public:
           size_t          numberOfElements,
           const double *  affine,
           const int64_t * bounds);
+  /** Prepares the linear-elastic system of the mesh of the last SetMesh() for SolveElasticity(): the system of
+   * LinearElasticFEMSolver (P1, Lame lambda and mu, grid frame in mm, u = 0 on the nodes flagged in `fixed`), kept
+   * matrix-free: K p is sum_e V_e sigma_e(grad p) grad phi_a (no assembly, no sparse pattern). */
+  Status
+  SetElasticity(double lambda, double mu, const uint8_t * fixed);
+  /** Solves K u = f on the device by Jacobi-preconditioned conjugate gradients from u = 0, with the CPU solver's
+   * stopping rule (|r| < tolerance |f| over the free degrees of freedom, Eigen's ConjugateGradient). f and u are
+   * node * D + component; u = 0 on fixed nodes. converged is false when maxIterations products did not reach the
+   * tolerance (the caller falls back to the CPU solver); iterations: the products K p taken. */
+  Status
+  SolveElasticity(const double * f, double * u, double tolerance, size_t maxIterations, size_t & iterations,
+                  bool & converged);
+  /** u^T K u / 2 over all nodes (fixed ones included), as LinearElasticFEMSolver::ElasticEnergy. */
+  Status
+  ElasticEnergy(const double * u, double & energy);
   /** Host copy of the owning element of every pixel. */
   Status
   DownloadElementOfPixels(int32_t * host) const;

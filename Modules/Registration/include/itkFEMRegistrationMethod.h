@@ -107,6 +107,8 @@ public:
     size_t       sweeps;     // CVT sweeps of this iteration (dynamic mode)
     double       maxUpdate;  // largest update displacement (pixels) of the accepted step
     double       stepScale;  // fraction of the full step K^-1 f / beta taken (1, 1/2, ...; 0: no step lowered the MSSD)
+    size_t       solverIterations; // conjugate-gradient products K p of this iteration's solve
+    bool         deviceSolve;      // the solve ran on the GPU (CUDA back-end, see DeviceSolverMinimumDegreesOfFreedom)
   };
   /** Seconds per stage, summed over iterations (the breakdown of paper Table 1). */
   struct Timing
@@ -116,7 +118,7 @@ public:
     double meshConstruction{ 0 };
     double barycentric{ 0 };
     double registration{ 0 };
-    double femSolve{ 0 }; // part of registration: stiffness assembly and solves (CPU)
+    double femSolve{ 0 }; // part of registration: stiffness set-up and solves (CPU assembly, or the device solve)
     double total{ 0 };
   };
 
@@ -175,6 +177,13 @@ public:
   itkSetEnumMacro(Backend, BackendEnum);
   itkGetEnumMacro(Backend, BackendEnum);
   itkGetConstMacro(BackendUsed, BackendEnum);
+  /** CUDA back-end: elastic systems with at least this many free degrees of freedom are solved on the device
+   * (matrix-free Jacobi-preconditioned conjugate gradients, RegistrationContext::SolveElasticity, to the CPU solver's
+   * tolerance; a solve that does not converge falls back to the CPU solver); smaller ones are assembled and solved on
+   * the CPU, where they are faster (about 100 conjugate-gradient products of a few hundred unknowns cost less than the
+   * kernel launches; crossover measured in docs/benchmarks.md). 0: always on the device. Default 300. */
+  itkSetMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
+  itkGetConstMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
   /** Device memory the CUDA back-end held at its peak (bytes; 0 on the CPU path). */
   itkGetConstMacro(DeviceBytes, SizeValueType);
 
@@ -252,10 +261,11 @@ private:
   /** Both back-ends: zero output field, the stages' settings, history/timing/beta reset (needs m_BackendUsed). */
   void
   ConfigureStages();
-  /** nodalU = K^-1 nodalForce (timed as FEM solve); while beta is unset (the first iteration) sets it so that
+  /** nodalU = K^-1 nodalForce by solve() (timed as FEM solve); while beta is unset (the first iteration) sets it so that
    * beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
+  template <typename TSolve>
   bool
-  SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd);
+  SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd, TSolve && solve);
   /** The step safeguard, one rule for both back-ends: tries W o exp(s u) for s = 1, 1/2, ... while the candidate's
    * MSSD is above record.mssd (at most MaximumStepHalvings halvings; none checked when it is 0). apply(s) makes the
    * candidate for s and returns its largest update (pixels); candidateMSSD() evaluates the force at the candidate and
@@ -290,6 +300,7 @@ private:
   BackendEnum   m_Backend{ BackendEnum::Auto };
   BackendEnum   m_BackendUsed{ BackendEnum::CPU };
   size_t        m_DeviceBytes{ 0 };
+  SizeValueType m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
 
   double                       m_Beta{ 0.0 };
   unsigned int                 m_CurrentIteration{ 0 };

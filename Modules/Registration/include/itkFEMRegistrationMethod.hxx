@@ -283,7 +283,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     // 3-5. nodal forces, solve, beta, interpolate, exponential update
     t0 = Clock::now();
     bary.Gather(m_DensityFilter->GetGridForce().data(), dV, nodalForce, threader);
-    if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd))
+    if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd, [&] {
+          m_Solver->Solve(nodalForce, nodalU);
+          record.solverIterations = m_Solver->GetLastIterations();
+        }))
     {
       // the images already match (no force): nothing to register
       m_History.push_back(record);
@@ -400,13 +403,15 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
 }
 
 template <typename TF, typename TM, typename TD>
+template <typename TSolve>
 bool
 FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & nodalForce,
                                                    std::vector<double> &       nodalU,
-                                                   double                      mssd)
+                                                   double                      mssd,
+                                                   TSolve &&                   solve)
 {
   const auto t0 = std::chrono::steady_clock::now();
-  m_Solver->Solve(nodalForce, nodalU);
+  solve();
   m_Timing.femSolve += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   if (m_Beta == 0.0)
   {
@@ -674,14 +679,40 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   dmr::cuda::LabelSummarizer         summarizer;
   dmr::LabelSummary                  summary;
 
+  // the elastic system of a mesh: on the device when it is large enough (no assembly on the CPU), otherwise
+  // assembled on the CPU; hostAssembled says whether m_Solver holds the current mesh's K
+  bool   deviceSolve = false, hostAssembled = false;
+  size_t freeDegrees = 0;
+  auto   prepareSolve = [&](const SimplexMeshType & mesh) {
+    freeDegrees = 0;
+    for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+    {
+      freeDegrees += (mesh.fixed.empty() || !mesh.fixed[a]) ? D : 0;
+    }
+    deviceSolve = freeDegrees >= m_DeviceSolverMinimumDegreesOfFreedom;
+    hostAssembled = !deviceSolve;
+    if (deviceSolve)
+    {
+      const auto t1 = Clock::now();
+      dmr::ThrowOnError(context.SetElasticity(m_Lambda, m_Mu, mesh.fixed.empty() ? nullptr : mesh.fixed.data()),
+                        "elastic system");
+      const double elapsed = seconds(t1, Clock::now());
+      m_Timing.femSolve += elapsed;
+      m_Timing.registration += elapsed;
+    }
+    else
+    {
+      this->SetSolverMesh(mesh);
+    }
+  };
+
   if (m_MeshMode != MeshModeEnum::Dynamic)
   {
     this->BuildStaticMesh();
     t0 = Clock::now();
-    t0 = Clock::now();
     this->UploadMesh(context, m_StaticSimplexMesh);
     m_Timing.barycentric += seconds(t0, Clock::now());
-    this->SetSolverMesh(m_StaticSimplexMesh);
+    prepareSolve(m_StaticSimplexMesh);
   }
 
   const bool                 warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
@@ -775,16 +806,43 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       t0 = Clock::now();
       this->UploadMesh(context, *m_CurrentMesh);
       m_Timing.barycentric += seconds(t0, Clock::now());
-      this->SetSolverMesh(*m_CurrentMesh);
+      prepareSolve(*m_CurrentMesh);
     }
     record.nodes = m_CurrentMesh->NumberOfNodes();
 
-    // 3-5. nodal forces (device), solve (host, the mesh is small), beta, interpolation and update (device)
+    // 3-5. nodal forces (device), solve (device, or host for a small system), beta, interpolation and update (device)
     t0 = Clock::now();
     const SimplexMeshType & mesh = *m_CurrentMesh;
     nodalForce.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.GatherForce(dV, nodalForce.data()), "force gathering");
-    if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd))
+    const bool solved = this->SolveAndSetBeta(nodalForce, nodalU, record.mssd, [&] {
+      if (deviceSolve)
+      {
+        bool converged = false;
+        nodalU.resize(nodalForce.size());
+        dmr::ThrowOnError(context.SolveElasticity(nodalForce.data(),
+                                                  nodalU.data(),
+                                                  m_Solver->GetTolerance(),
+                                                  std::max<size_t>(1000, 4 * freeDegrees),
+                                                  record.solverIterations,
+                                                  converged),
+                          "elastic solve");
+        record.deviceSolve = converged;
+        if (converged)
+        {
+          return;
+        }
+        // not converged (a very ill-conditioned mesh): the CPU solver, whose last resort is a factorisation
+        if (!hostAssembled)
+        {
+          m_Solver->SetMesh(mesh);
+          hostAssembled = true;
+        }
+      }
+      m_Solver->Solve(nodalForce, nodalU);
+      record.solverIterations = m_Solver->GetLastIterations();
+    });
+    if (!solved)
     {
       // the images already match (no force): nothing to register
       m_History.push_back(record);
@@ -793,7 +851,14 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     }
     nodalW.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.SampleFieldAtNodes(nodalW.data()), "nodal sampling");
-    record.elastic = m_Solver->ElasticEnergy(nodalW);
+    if (hostAssembled)
+    {
+      record.elastic = m_Solver->ElasticEnergy(nodalW);
+    }
+    else
+    {
+      dmr::ThrowOnError(context.ElasticEnergy(nodalW.data(), record.elastic), "elastic energy");
+    }
     record.total = record.mssd + m_Beta * record.elastic;
     // W <- W o exp(s u) on the device; a rejected candidate is reverted
     forceIsCurrent = this->SafeguardedStep(
@@ -861,6 +926,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "Backend: " << m_Backend << std::endl;
   os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
   os << indent << "DeviceBytes: " << m_DeviceBytes << std::endl;
+  os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "Beta: " << m_Beta << std::endl;
   os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;

@@ -79,6 +79,21 @@ RegistrationContext::SetMesh(const double *, size_t, const int32_t *, size_t, co
   return Unavailable();
 }
 Status
+RegistrationContext::SetElasticity(double, double, const uint8_t *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::SolveElasticity(const double *, double *, double, size_t, size_t &, bool &)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::ElasticEnergy(const double *, double &)
+{
+  return Unavailable();
+}
+Status
 RegistrationContext::DownloadElementOfPixels(int32_t *) const
 {
   return Unavailable();
