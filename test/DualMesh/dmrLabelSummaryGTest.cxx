@@ -19,6 +19,8 @@
 #include "dmrDualMeshPhantom.h"
 #include "dmrLabelSummaryHelpers.h"
 #include "gtest/gtest.h"
+#include <algorithm>
+#include <random>
 
 namespace
 {
@@ -214,3 +216,66 @@ TEST(DualMeshBuilder, RejectsAnInconsistentSummary)
   EXPECT_THROW(itk::dmr::BuildDualMesh<2>(grid2, summary, nullptr), itk::ExceptionObject);
 }
 } // namespace
+
+namespace
+{
+/** The definition: the pairs whose two nodes are not both vertices of one element. */
+template <size_t V>
+size_t
+BruteForceMissingEdges(const std::vector<std::array<int32_t, 2>> & pairs, const std::vector<std::array<int32_t, V>> & elements)
+{
+  size_t missing = 0;
+  for (const auto & p : pairs)
+  {
+    bool found = false;
+    for (const auto & e : elements)
+    {
+      const bool hasA = std::find(e.begin(), e.end(), p[0]) != e.end();
+      const bool hasB = std::find(e.begin(), e.end(), p[1]) != e.end();
+      found = found || (p[0] != p[1] && hasA && hasB);
+    }
+    missing += found ? 0 : 1;
+  }
+  return missing;
+}
+
+template <size_t V>
+void
+MissingEdgesMatchTheDefinition(unsigned int seed)
+{
+  std::mt19937                           random(seed);
+  const int32_t                          nNodes = 60;
+  std::uniform_int_distribution<int32_t> node(0, nNodes - 1);
+  std::vector<std::array<int32_t, V>>    elements(90);
+  for (auto & e : elements)
+  {
+    for (size_t v = 0; v < V; ++v)
+    {
+      do
+      {
+        e[v] = node(random);
+      } while (std::find(e.begin(), e.begin() + v, e[v]) != e.begin() + v);
+    }
+  }
+  std::vector<std::array<int32_t, 2>> pairs;
+  for (int i = 0; i < 400; ++i)
+  {
+    pairs.push_back({ node(random), node(random) }); // any order, self pairs included
+  }
+  pairs.push_back({ 3, nNodes + 5 });                // a node no element has
+  std::sort(pairs.begin(), pairs.begin() + 200);     // a grouped run, then an ungrouped one
+  const size_t expected = BruteForceMissingEdges(pairs, elements);
+  EXPECT_GT(expected, 0u);
+  EXPECT_LT(expected, pairs.size());
+  EXPECT_EQ(itk::dmr::CountEdgesNotInMesh(pairs, elements), expected) << "seed " << seed;
+}
+} // namespace
+
+TEST(DualMeshBuilder, CountEdgesNotInMeshMatchesTheDefinition)
+{
+  for (unsigned int seed = 1; seed <= 5; ++seed)
+  {
+    MissingEdgesMatchTheDefinition<3>(seed);
+    MissingEdgesMatchTheDefinition<4>(seed);
+  }
+}

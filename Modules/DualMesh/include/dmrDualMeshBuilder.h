@@ -236,31 +236,67 @@ ForEachImageCorner(const Grid<D> & grid, const LabelSummary & summary, TFirst &&
   }
 }
 
-/** Number of node pairs (a, b) that are not an edge of any element. */
+/** Number of node pairs (a, b) that are not an edge of any element. Linear time: the elements around every node (an
+ * incidence list), and for the pairs of one node (the summary's pairs come grouped by their smaller node) its mesh
+ * neighbours are stamped once. */
 template<size_t VVertices>
 size_t
 CountEdgesNotInMesh(const std::vector<std::array<int32_t, 2>> &         pairs,
                     const std::vector<std::array<int32_t, VVertices>> & elements)
 {
-  std::vector<uint64_t> edges;
-  edges.reserve(elements.size() * VVertices * (VVertices - 1) / 2);
+  int32_t nNodes = 0;
   for (const auto & e : elements)
   {
-    for (size_t a = 0; a < VVertices; ++a)
+    for (const int32_t v : e)
     {
-      for (size_t b = a + 1; b < VVertices; ++b)
+      nNodes = std::max(nNodes, v + 1);
+    }
+  }
+  std::vector<int32_t> start(static_cast<size_t>(nNodes) + 1, 0), incident(elements.size() * VVertices);
+  for (const auto & e : elements)
+  {
+    for (const int32_t v : e)
+    {
+      ++start[v + 1];
+    }
+  }
+  for (int32_t a = 0; a < nNodes; ++a)
+  {
+    start[a + 1] += start[a];
+  }
+  {
+    std::vector<int32_t> fill(start.begin(), start.end() - 1);
+    for (size_t e = 0; e < elements.size(); ++e)
+    {
+      for (const int32_t v : elements[e])
       {
-        edges.push_back(LabelSummary::PairKey(static_cast<uint32_t>(e[a]), static_cast<uint32_t>(e[b])));
+        incident[fill[v]++] = static_cast<int32_t>(e);
       }
     }
   }
-  std::sort(edges.begin(), edges.end());
-  edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
-  size_t missing = 0;
+  std::vector<int32_t> stamp(static_cast<size_t>(nNodes), -1);
+  int32_t              stamped = -1;
+  size_t               missing = 0;
   for (const auto & p : pairs)
   {
-    const uint64_t key = LabelSummary::PairKey(static_cast<uint32_t>(p[0]), static_cast<uint32_t>(p[1]));
-    missing += std::binary_search(edges.begin(), edges.end(), key) ? 0 : 1;
+    const int32_t a = std::min(p[0], p[1]), b = std::max(p[0], p[1]);
+    if (a == b || a < 0 || b >= nNodes)
+    {
+      ++missing;
+      continue;
+    }
+    if (a != stamped)
+    {
+      stamped = a;
+      for (int32_t k = start[a]; k < start[a + 1]; ++k)
+      {
+        for (const int32_t v : elements[incident[k]])
+        {
+          stamp[v] = a;
+        }
+      }
+    }
+    missing += stamp[b] == a ? 0 : 1;
   }
   return missing;
 }
