@@ -832,12 +832,14 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         {
           return;
         }
-        // not converged (a very ill-conditioned mesh): the CPU solver, whose last resort is a factorisation
+        // not converged (a very ill-conditioned mesh): the CPU solver, whose last resort is a factorisation, for
+        // this mesh's remaining solves too (a static mesh keeps it)
         if (!hostAssembled)
         {
           m_Solver->SetMesh(mesh);
           hostAssembled = true;
         }
+        deviceSolve = false;
       }
       m_Solver->Solve(nodalForce, nodalU);
       record.solverIterations = m_Solver->GetLastIterations();
