@@ -252,28 +252,8 @@ CountEdgesNotInMesh(const std::vector<std::array<int32_t, 2>> &         pairs,
       nNodes = std::max(nNodes, v + 1);
     }
   }
-  std::vector<int32_t> start(static_cast<size_t>(nNodes) + 1, 0), incident(elements.size() * VVertices);
-  for (const auto & e : elements)
-  {
-    for (const int32_t v : e)
-    {
-      ++start[v + 1];
-    }
-  }
-  for (int32_t a = 0; a < nNodes; ++a)
-  {
-    start[a + 1] += start[a];
-  }
-  {
-    std::vector<int32_t> fill(start.begin(), start.end() - 1);
-    for (size_t e = 0; e < elements.size(); ++e)
-    {
-      for (const int32_t v : elements[e])
-      {
-        incident[fill[v]++] = static_cast<int32_t>(e);
-      }
-    }
-  }
+  std::vector<int32_t> start, incident;
+  ElementsAroundNodes(elements, static_cast<size_t>(nNodes), start, incident);
   std::vector<int32_t> stamp(static_cast<size_t>(nNodes), -1);
   int32_t              stamped = -1;
   size_t               missing = 0;

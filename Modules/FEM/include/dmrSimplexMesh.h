@@ -139,6 +139,38 @@ struct SimplexMesh
   }
 };
 
+/** The elements around every node, in element order: those of node a are incident[start[a]] .. incident[start[a+1]-1]
+ * (compressed rows; start has nNodes + 1 entries). Every vertex id must be below nNodes. */
+template <size_t VVertices, typename TIndex>
+void
+ElementsAroundNodes(const std::vector<std::array<int32_t, VVertices>> & elements,
+                    size_t                                             nNodes,
+                    std::vector<TIndex> &                              start,
+                    std::vector<TIndex> &                              incident)
+{
+  start.assign(nNodes + 1, 0);
+  for (const auto & e : elements)
+  {
+    for (const int32_t v : e)
+    {
+      ++start[v + 1];
+    }
+  }
+  for (size_t a = 0; a < nNodes; ++a)
+  {
+    start[a + 1] += start[a];
+  }
+  incident.resize(elements.size() * VVertices);
+  std::vector<TIndex> fill(start.begin(), start.end() - 1);
+  for (size_t e = 0; e < elements.size(); ++e)
+  {
+    for (const int32_t v : elements[e])
+    {
+      incident[fill[v]++] = static_cast<TIndex>(e);
+    }
+  }
+}
+
 /** Static regular mesh: nodesPerAxis^D nodes spread evenly over the image box, each grid cube split into D!
  * simplices (Kuhn/Freudenthal split, conforming across cubes): 2 triangles per square, 6 tetrahedra per cube. */
 template <unsigned int D>

@@ -78,28 +78,8 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
   // pattern from the elements, then every element's block added at its place, in element order (the same sums, in
   // the same order, as assembling from triplets). K is stored column by column; entry (row (a,i), column (b,j)) of
   // element e is added to column (b,j).
-  std::vector<int64_t> incidenceStart(nNodes + 1, 0), incidence(nElements * NV);
-  for (size_t e = 0; e < nElements; ++e)
-  {
-    for (unsigned int a = 0; a < NV; ++a)
-    {
-      ++incidenceStart[mesh.elements[e][a] + 1];
-    }
-  }
-  for (size_t a = 0; a < nNodes; ++a)
-  {
-    incidenceStart[a + 1] += incidenceStart[a];
-  }
-  {
-    std::vector<int64_t> fill(incidenceStart.begin(), incidenceStart.end() - 1);
-    for (size_t e = 0; e < nElements; ++e)
-    {
-      for (unsigned int a = 0; a < NV; ++a)
-      {
-        incidence[fill[mesh.elements[e][a]]++] = static_cast<int64_t>(e);
-      }
-    }
-  }
+  std::vector<int64_t> incidenceStart, incidence;
+  dmr::ElementsAroundNodes(mesh.elements, nNodes, incidenceStart, incidence);
   // neighbours of every node (itself included), sorted: the block pattern of its column
   std::vector<int64_t> patternStart(nNodes + 1, 0), pattern;
   pattern.reserve(nElements * NV * 2);

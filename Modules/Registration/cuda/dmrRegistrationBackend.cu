@@ -867,6 +867,31 @@ NodeApplyKernel(long long nn, const int * start, const int * incidence, const do
   }
 }
 
+/** r_i = ri and z_i = M^-1 ri (for i < ndof), then per block the partial sums of r.r and r.z; returns z_i. Every thread
+ * of the block calls it. */
+__device__ double
+StoreResidual(long long i, long long ndof, double ri, const double * inverseDiagonal, double * r, double * z,
+              double * shared, double * rrPartials, double * rzPartials)
+{
+  double rr = 0.0, rz = 0.0, zi = 0.0;
+  if (i < ndof)
+  {
+    zi = inverseDiagonal[i] * ri;
+    r[i] = ri;
+    z[i] = zi;
+    rr = ri * ri;
+    rz = ri * zi;
+  }
+  const double rrBlock = BlockSum(rr, shared);
+  const double rzBlock = BlockSum(rz, shared);
+  if (threadIdx.x == 0)
+  {
+    rrPartials[blockIdx.x] = rrBlock;
+    rzPartials[blockIdx.x] = rzBlock;
+  }
+  return zi;
+}
+
 // CG state: scalars[0..1] = r.z by iteration parity, scalars[2] = |r|^2 of the last step; state[0] = converged flag,
 // state[1] = products taken.
 /** x += alpha p, r -= alpha q, z = M^-1 r with alpha = (r.z) / (p.q); per block partial sums of r.r and r.z. */
@@ -882,24 +907,13 @@ CGStepKernel(long long ndof, int parity, const double * pqPartials, int pqCount,
   }
   const double    alpha = scalars[parity] / SumPartials(pqPartials, pqCount, shared);
   const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  double          rr = 0.0, rz = 0.0;
+  double          ri = 0.0;
   if (i < ndof)
   {
     x[i] += alpha * p[i];
-    const double ri = r[i] - alpha * q[i];
-    r[i] = ri;
-    const double zi = inverseDiagonal[i] * ri;
-    z[i] = zi;
-    rr = ri * ri;
-    rz = ri * zi;
+    ri = r[i] - alpha * q[i];
   }
-  const double rrBlock = BlockSum(rr, shared);
-  const double rzBlock = BlockSum(rz, shared);
-  if (threadIdx.x == 0)
-  {
-    rrPartials[blockIdx.x] = rrBlock;
-    rzPartials[blockIdx.x] = rzBlock;
-  }
+  StoreResidual(i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
 }
 
 /** Stops when |r|^2 < threshold; otherwise p = z + beta p with beta = (r.z)_new / (r.z)_old. */
@@ -943,24 +957,16 @@ CGStartKernel(long long ndof, const double * f, const double * inverseDiagonal, 
 {
   __shared__ double shared[CGThreads];
   const long long   i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  double            rr = 0.0, rz = 0.0;
+  double            ri = 0.0;
   if (i < ndof)
   {
-    const double ri = fixed[i / dimension] ? 0.0 : f[i];
-    const double zi = inverseDiagonal[i] * ri;
+    ri = fixed[i / dimension] ? 0.0 : f[i];
     x[i] = 0.0;
-    r[i] = ri;
-    z[i] = zi;
-    p[i] = zi;
-    rr = ri * ri;
-    rz = ri * zi;
   }
-  const double rrBlock = BlockSum(rr, shared);
-  const double rzBlock = BlockSum(rz, shared);
-  if (threadIdx.x == 0)
+  const double zi = StoreResidual(i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
+  if (i < ndof)
   {
-    rrPartials[blockIdx.x] = rrBlock;
-    rzPartials[blockIdx.x] = rzBlock;
+    p[i] = zi;
   }
 }
 
