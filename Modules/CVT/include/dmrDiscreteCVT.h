@@ -21,7 +21,6 @@
 #include "dmrGrid.h"
 #include "itkMacro.h"
 #include <vector>
-#include <queue>
 #include <numeric>
 #include <algorithm>
 #include <cstdint>
@@ -68,7 +67,7 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
  * face-connected cells of pixels. Positions are in the grid frame (mm).
  *
  * Initial tessellation (paper 4.4, A.1): greedy least-cost contraction of neighbouring clusters, starting from
- * BlockSize^D blocks, with a binary heap and lazy deletion (each entry carries the two clusters' versions).
+ * BlockSize^D blocks, with an indexed heap of the clusters keyed by their least-cost pair (see ContractionInitialize).
  *
  * Optimisation (paper 4.5, Algorithm 1, A.2), two-phase like the CUDA kernel:
  *  - the pixels are split into 2^D parity colours (index mod 2 per axis); a sub-sweep treats one colour. No two
@@ -204,7 +203,15 @@ public:
     Position(m_Grid.Index(p), x);
   }
 
-  /** Greedy least-cost pair contraction (paper 4.4) down to numberOfCells clusters. */
+  /** Greedy least-cost pair contraction (paper 4.4) down to numberOfCells clusters.
+   *
+   * Starts from the BlockSize^D blocks and repeatedly merges the adjacent pair of clusters with the least
+   * (cost, lower id, higher id), the cluster with more neighbours (ties: the lower id) absorbing the other. Each
+   * cluster holds the least key over its pairs (the costs of the pairs are kept in its adjacency list), and an
+   * indexed 4-ary heap over the clusters gives the least of those: the global least pair, as a heap of all the pairs
+   * would, with one node per cluster and no stale entries. After a merge, the costs of the kept cluster's pairs are
+   * computed again, and a neighbour's key is updated where the new pair is less than it, or taken again from its list
+   * where it was a pair with one of the two merged clusters (the other keys are unchanged). */
   void
   ContractionInitialize(size_t numberOfCells, unsigned int blockSize)
   {
@@ -228,38 +235,104 @@ public:
       itkGenericExceptionMacro("DiscreteCVT: cannot make " << numberOfCells << " cells from " << numberOfBlocks
                                                            << " pixels/blocks");
     }
-    auto blockOf = [&](size_t p) {
-      const auto idx = m_Grid.Index(p);
-      size_t     b = 0;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        b += (static_cast<size_t>(idx[k]) / blockSize) * bstride[k];
-      }
-      return b;
-    };
-    std::vector<double> mass(numberOfBlocks, 0.0), moment(numberOfBlocks * D, 0.0);
-    for (size_t p = 0; p < m_Grid.numberOfPixels; ++p)
+    struct Cluster
     {
-      const size_t b = blockOf(p);
-      double       x[D];
-      Position(p, x);
-      const double w = m_Density[p];
-      mass[b] += w;
-      for (unsigned int k = 0; k < D; ++k)
+      double   mass;
+      double   centroid[D]; // the first moment, until the blocks are summed
+      size_t   first; // its links are link[first, first + count), with room for capacity
+      uint32_t count;
+      uint32_t capacity;
+    };
+    struct Link
+    {
+      double  cost;
+      int32_t to;
+    };
+    std::vector<Cluster> cluster(numberOfBlocks);
+
+    // Block masses and centroids. The pixels are visited row by row (a row: the size[0] pixels along axis 0, in runs
+    // of one block each), with no division per pixel. A slab (blockSize pixel planes across the last axis) holds
+    // whole rows and whole blocks, so the slabs are summed in parallel; within a block the pixels are added in
+    // increasing order as by a plain scan, so the sums are the same, bit for bit, whatever the threads.
+    const size_t rowLength = m_Grid.size[0];
+    const size_t numberOfSlabs = D > 1 ? nb[D - 1] : 1;
+    const size_t slabBlocks = D > 1 ? bstride[D - 1] : numberOfBlocks;
+    auto         forEachRun = [&](size_t slab, auto && body) {
+      const size_t planeSize = D > 1 ? m_Grid.stride[D - 1] : 0;
+      const size_t begin = D > 1 ? slab * blockSize * planeSize : 0;
+      const size_t end =
+        D > 1 ? std::min(m_Grid.size[D - 1], (slab + 1) * blockSize) * planeSize : m_Grid.numberOfPixels;
+      for (size_t rowStart = begin; rowStart < end; rowStart += rowLength)
       {
-        moment[b * D + k] += w * x[k];
+        const IndexType idx = m_Grid.Index(rowStart);
+        size_t          b = 0;
+        for (unsigned int k = 1; k < D; ++k)
+        {
+          b += (static_cast<size_t>(idx[k]) / blockSize) * bstride[k];
+        }
+        for (size_t i = 0; i < rowLength; i += blockSize, ++b)
+        {
+          body(b, idx, rowStart, i, std::min(rowLength, i + blockSize)); // block b: pixels rowStart + [i, end)
+        }
       }
-    }
-    std::vector<double> r(numberOfBlocks * D);
+    };
+    ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
+      forEachRun(slab, [&](size_t b, const IndexType & idx, size_t rowStart, size_t i, size_t end) {
+        double x[D];
+        Position(idx, x);
+        Cluster & c = cluster[b];
+        double    mass = c.mass;
+        double    moment[D];
+        std::copy_n(c.centroid, D, moment);
+        for (; i < end; ++i)
+        {
+          x[0] = static_cast<double>(i) * m_Grid.spacing[0];
+          const double w = m_Density[rowStart + i];
+          mass += w;
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            moment[k] += w * x[k];
+          }
+        }
+        c.mass = mass;
+        std::copy_n(moment, D, c.centroid);
+      });
+      for (size_t b = slab * slabBlocks; b < (slab + 1) * slabBlocks; ++b)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          cluster[b].centroid[k] /= cluster[b].mass;
+        }
+      }
+    });
+    auto cost = [&](int32_t a, int32_t b) {
+      const Cluster & lo = cluster[std::min(a, b)];
+      const Cluster & hi = cluster[std::max(a, b)];
+      return ContractionCost<D>(lo.mass, lo.centroid, hi.mass, hi.centroid);
+    };
+
+    // Cluster adjacency (face neighbours of blocks) with the cost of each pair, in one pool; a list that outgrows its
+    // room moves to the end of the pool with twice the room. Only the sizes of the lists matter (which cluster is
+    // kept), not their order.
+    std::vector<Link> link(numberOfBlocks * 2 * D);
     for (size_t b = 0; b < numberOfBlocks; ++b)
     {
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        r[b * D + k] = moment[b * D + k] / mass[b];
-      }
+      cluster[b].first = b * 2 * D;
+      cluster[b].count = 0;
+      cluster[b].capacity = 2 * D;
     }
-    // Cluster adjacency (face neighbours of blocks).
-    std::vector<std::vector<int32_t>> adjacency(numberOfBlocks);
+    auto appendLink = [&](int32_t a, int32_t b, double c) {
+      Cluster & ca = cluster[a];
+      if (ca.count == ca.capacity)
+      {
+        const size_t first = link.size();
+        link.resize(first + 2 * size_t{ ca.capacity });
+        std::copy_n(link.begin() + ca.first, ca.count, link.begin() + first);
+        ca.first = first;
+        ca.capacity *= 2;
+      }
+      link[ca.first + ca.count++] = { c, b };
+    };
     for (size_t b = 0; b < numberOfBlocks; ++b)
     {
       size_t rest = b;
@@ -269,99 +342,203 @@ public:
         rest /= nb[k];
         if (ik + 1 < nb[k])
         {
-          adjacency[b].push_back(static_cast<int32_t>(b + bstride[k]));
-          adjacency[b + bstride[k]].push_back(static_cast<int32_t>(b));
+          const int32_t a = static_cast<int32_t>(b), n = static_cast<int32_t>(b + bstride[k]);
+          const double  c = cost(a, n);
+          appendLink(a, n, c);
+          appendLink(n, a, c);
         }
       }
     }
-    struct Entry
-    {
-      double   cost;
-      int32_t  a, b;
-      uint32_t va, vb;
-      bool
-      operator>(const Entry & o) const
+
+    // Indexed 4-ary min-heap of the clusters that have neighbours, keyed by their least pair; node[c]: c's node (a
+    // small array of its own: every move in the heap writes it).
+    std::vector<ContractionKey> heap;
+    std::vector<uint32_t>       node(numberOfBlocks);
+    auto                        place = [&](size_t i, const ContractionKey & key) {
+      heap[i] = key;
+      node[key.Holder()] = static_cast<uint32_t>(i);
+    };
+    auto siftUp = [&](size_t i, ContractionKey key) {
+      while (i > 0)
       {
-        if (cost != o.cost)
+        const size_t up = (i - 1) / 4;
+        if (!(key < heap[up]))
         {
-          return cost > o.cost;
+          break;
         }
-        if (a != o.a)
+        place(i, heap[up]);
+        i = up;
+      }
+      place(i, key);
+    };
+    auto siftDown = [&](size_t i, ContractionKey key) {
+      const size_t n = heap.size();
+      for (;;)
+      {
+        const size_t first = 4 * i + 1;
+        if (first >= n)
         {
-          return a > o.a;
+          break;
         }
-        return b > o.b;
+        size_t       least = first;
+        const size_t last = std::min(n, first + 4);
+        for (size_t j = first + 1; j < last; ++j)
+        {
+          if (heap[j] < heap[least])
+          {
+            least = j;
+          }
+        }
+        if (!(heap[least] < key))
+        {
+          break;
+        }
+        place(i, heap[least]);
+        i = least;
+      }
+      place(i, key);
+    };
+    auto update = [&](size_t i, ContractionKey key) {
+      if (key < heap[i])
+      {
+        siftUp(i, key);
+      }
+      else
+      {
+        siftDown(i, key);
       }
     };
-    std::vector<uint32_t> version(numberOfBlocks, 0);
-    std::vector<int32_t>  parent(numberOfBlocks);
+    auto remove = [&](int32_t c) {
+      const size_t         i = node[c];
+      const ContractionKey last = heap.back();
+      heap.pop_back();
+      if (i < heap.size())
+      {
+        update(i, last);
+      }
+    };
+    // c's least key: for one holder, the order of the keys is that of (cost, partner), as both the pairs with a
+    // lower partner (lower id: the partner) and those with a higher one (lower id: c) come by increasing partner.
+    auto leastPair = [&](int32_t c) {
+      const Link * l = &link[cluster[c].first];
+      const Link * end = l + cluster[c].count;
+      const Link * least = l;
+      for (++l; l < end; ++l)
+      {
+        if (l->cost != least->cost ? l->cost < least->cost : l->to < least->to)
+        {
+          least = l;
+        }
+      }
+      return ContractionKey::Make(least->cost, c, least->to);
+    };
+    heap.resize(numberOfBlocks > 1 ? numberOfBlocks : 0);
+    for (size_t i = 0; i < heap.size(); ++i)
+    {
+      heap[i] = leastPair(static_cast<int32_t>(i));
+    }
+    for (size_t i = heap.size() / 4 + 1; i-- > 0;)
+    {
+      if (i < heap.size())
+      {
+        siftDown(i, heap[i]);
+      }
+    }
+    for (size_t i = 0; i < heap.size(); ++i)
+    {
+      node[heap[i].Holder()] = static_cast<uint32_t>(i);
+    }
+
+    std::vector<int32_t> parent(numberOfBlocks);
     std::iota(parent.begin(), parent.end(), 0);
-    std::vector<Entry> storage;
-    storage.reserve(numberOfBlocks * D * 2);
-    std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> heap(std::greater<Entry>(),
-                                                                               std::move(storage));
-    auto push = [&](int32_t a, int32_t b) {
-      const int32_t lo = std::min(a, b), hi = std::max(a, b);
-      heap.push({ ContractionCost<D>(mass[lo], &r[lo * D], mass[hi], &r[hi * D]), lo, hi, version[lo], version[hi] });
-    };
-    for (size_t b = 0; b < numberOfBlocks; ++b)
-    {
-      for (int32_t n : adjacency[b])
-      {
-        if (n > static_cast<int32_t>(b))
-        {
-          push(static_cast<int32_t>(b), n);
-        }
-      }
-    }
     size_t clusters = numberOfBlocks;
     while (clusters > numberOfCells && !heap.empty())
     {
-      const Entry e = heap.top();
-      heap.pop();
-      if (parent[e.a] != e.a || parent[e.b] != e.b || version[e.a] != e.va || version[e.b] != e.vb)
-      {
-        continue; // stale entry (lazy deletion)
-      }
       // keep the cluster with the longer adjacency list, merge the other into it
-      int32_t keep = e.a, gone = e.b;
-      if (adjacency[gone].size() > adjacency[keep].size())
+      int32_t keep = heap[0].Low(), gone = heap[0].High();
+      if (cluster[gone].count > cluster[keep].count)
       {
         std::swap(keep, gone);
       }
-      const double m = mass[keep] + mass[gone]; // Eq. 19
-      for (unsigned int k = 0; k < D; ++k)     // Eq. 20
+      Cluster &       ck = cluster[keep];
+      const Cluster & cg = cluster[gone];
+      const double    m = ck.mass + cg.mass; // Eq. 19
+      for (unsigned int k = 0; k < D; ++k)   // Eq. 20
       {
-        r[keep * D + k] = (mass[keep] * r[keep * D + k] + mass[gone] * r[gone * D + k]) / m;
+        ck.centroid[k] = (ck.mass * ck.centroid[k] + cg.mass * cg.centroid[k]) / m;
       }
-      mass[keep] = m;
+      ck.mass = m;
       parent[gone] = keep;
-      auto & ak = adjacency[keep];
-      ak.erase(std::remove(ak.begin(), ak.end(), gone), ak.end());
-      for (int32_t n : adjacency[gone])
       {
+        Link * l = &link[ck.first];
+        while (l->to != gone)
+        {
+          ++l;
+        }
+        *l = link[ck.first + --ck.count];
+      }
+      // gone's neighbours become keep's: each drops gone, or links to keep instead where it did not already
+      for (size_t j = cg.first; j < cg.first + cg.count; ++j)
+      {
+        const int32_t n = link[j].to;
         if (n == keep)
         {
           continue;
         }
-        auto & an = adjacency[n];
-        const bool hasKeep = std::find(an.begin(), an.end(), keep) != an.end();
+        Cluster & cn = cluster[n];
+        Link *    l = &link[cn.first];
+        Link *    end = l + cn.count;
+        Link *    at = l;
+        bool      hasKeep = false;
+        for (; l < end; ++l)
+        {
+          at = l->to == gone ? l : at;
+          hasKeep |= l->to == keep;
+        }
         if (hasKeep)
         {
-          an.erase(std::remove(an.begin(), an.end(), gone), an.end());
+          *at = link[cn.first + --cn.count];
         }
         else
         {
-          std::replace(an.begin(), an.end(), gone, keep);
-          ak.push_back(n);
+          at->to = keep;
+          appendLink(keep, n, 0.0); // the cost follows
         }
       }
-      std::vector<int32_t>().swap(adjacency[gone]);
-      ++version[keep];
-      ++version[gone];
-      for (int32_t n : ak)
+      cluster[gone].count = 0;
+      remove(gone);
+      // the costs of keep's pairs changed, hence maybe the keys of its neighbours and its own
+      for (size_t j = ck.first; j < ck.first + ck.count; ++j)
       {
-        push(keep, n);
+        const int32_t n = link[j].to;
+        const double  c = cost(keep, n);
+        link[j].cost = c;
+        const Cluster & cn = cluster[n];
+        Link *          l = &link[cn.first];
+        while (l->to != keep)
+        {
+          ++l;
+        }
+        l->cost = c;
+        const ContractionKey key = ContractionKey::Make(c, n, keep);
+        const size_t         s = node[n];
+        const int32_t        partner = heap[s].Partner();
+        if (key < heap[s])
+        {
+          siftUp(s, key);
+        }
+        else if (partner == keep || partner == gone)
+        {
+          update(s, leastPair(n));
+        }
+      }
+      if (ck.count > 0)
+      {
+        update(node[keep], leastPair(keep));
+      }
+      else
+      {
+        remove(keep);
       }
       --clusters;
     }
@@ -386,10 +563,11 @@ public:
       }
       blockLabel[b] = compact[root];
     }
-    for (size_t p = 0; p < m_Grid.numberOfPixels; ++p)
-    {
-      m_Labels[p] = blockLabel[blockOf(p)];
-    }
+    ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
+      forEachRun(slab, [&](size_t b, const IndexType &, size_t rowStart, size_t i, size_t end) {
+        std::fill(m_Labels.begin() + rowStart + i, m_Labels.begin() + rowStart + end, blockLabel[b]);
+      });
+    });
     RecomputeStatistics(static_cast<size_t>(next));
   }
 
@@ -407,22 +585,18 @@ public:
   {
     m_Mass.assign(numberOfCells, 0.0);
     m_Centroid.assign(numberOfCells * D, 0.0);
-    for (size_t p = 0; p < m_Grid.numberOfPixels; ++p)
-    {
+    ForEachPosition(0, m_Grid.numberOfPixels, [&](size_t p, const double * x) {
       const LabelType l = m_Labels[p];
       if (l < 0 || static_cast<size_t>(l) >= numberOfCells)
       {
-        itkGenericExceptionMacro("DiscreteCVT: label " << l << " at pixel " << p << " is outside [0, " << numberOfCells
-                                                      << ")");
+        ThrowLabelOutsideRange(l, p, numberOfCells);
       }
-      double x[D];
-      Position(p, x);
       m_Mass[l] += m_Density[p];
       for (unsigned int k = 0; k < D; ++k)
       {
         m_Centroid[l * D + k] += m_Density[p] * x[k];
       }
-    }
+    });
     for (size_t c = 0; c < numberOfCells; ++c)
     {
       if (!(m_Mass[c] > 0.0))
@@ -446,11 +620,9 @@ public:
     std::vector<double> partial(nChunks, 0.0);
     ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
       double       e = 0.0;
+      const size_t begin = std::min(m_Grid.numberOfPixels, c * chunk);
       const size_t end = std::min(m_Grid.numberOfPixels, (c + 1) * chunk);
-      for (size_t p = c * chunk; p < end; ++p)
-      {
-        double x[D];
-        Position(p, x);
+      ForEachPosition(begin, end, [&](size_t p, const double * x) {
         const double * r = &m_Centroid[m_Labels[p] * D];
         double         d2 = 0.0;
         for (unsigned int k = 0; k < D; ++k)
@@ -458,7 +630,7 @@ public:
           d2 += (x[k] - r[k]) * (x[k] - r[k]);
         }
         e += m_Density[p] * d2;
-      }
+      });
       partial[c] = e;
     });
     return std::accumulate(partial.begin(), partial.end(), 0.0);
@@ -616,6 +788,52 @@ private:
   static constexpr unsigned int Centre = NeighbourhoodSize / 2;
 
   static constexpr unsigned int NumberOfColours = 1u << D;
+
+  /** A cluster's least pair in the contraction (see ContractionInitialize), ordered like the merges: by cost, then by
+   * the lower and the higher id of the pair. The lowest bit of pair tells which of the two clusters holds the key,
+   * so that the two holders of one pair have distinct keys and the order of the heap's keys is total. */
+  struct ContractionKey
+  {
+    double   cost;
+    uint64_t pair; // lower id << 33 | higher id << 1 | (the holder is the higher id)
+
+    static ContractionKey
+    Make(double cost, int32_t holder, int32_t partner)
+    {
+      const uint64_t lo = static_cast<uint64_t>(std::min(holder, partner));
+      const uint64_t hi = static_cast<uint64_t>(std::max(holder, partner));
+      return { cost, lo << 33 | hi << 1 | (holder > partner ? 1u : 0u) };
+    }
+    int32_t
+    Low() const
+    {
+      return static_cast<int32_t>(pair >> 33);
+    }
+    int32_t
+    High() const
+    {
+      return static_cast<int32_t>((pair >> 1) & 0xffffffffu);
+    }
+    int32_t
+    Holder() const
+    {
+      return (pair & 1) ? High() : Low();
+    }
+    int32_t
+    Partner() const
+    {
+      return (pair & 1) ? Low() : High();
+    }
+    bool
+    operator<(const ContractionKey & o) const
+    {
+      if (cost != o.cost)
+      {
+        return cost < o.cost;
+      }
+      return pair < o.pair;
+    }
+  };
   // m_PixelState bits
   static constexpr uint8_t InColourList = 1; // in its colour's scan list (or pending list)
   static constexpr uint8_t InCellList = 2;   // in its cell's gather list of its colour
@@ -634,6 +852,48 @@ private:
     for (unsigned int k = 0; k < D; ++k)
     {
       x[k] = static_cast<double>(idx[k]) * m_Grid.spacing[k];
+    }
+  }
+
+  /** Out of line, so that the per-pixel loop that checks the labels stays small. */
+  [[noreturn]] static void
+  ThrowLabelOutsideRange(LabelType l, size_t p, size_t numberOfCells)
+  {
+    itkGenericExceptionMacro("DiscreteCVT: label " << l << " at pixel " << p << " is outside [0, " << numberOfCells
+                                                   << ")");
+  }
+
+  /** Calls body(p, x) for the pixels p in [begin, end) in increasing order, x[D] the position of p, row by row with no
+   * division per pixel (the positions are those of Position). */
+  template <typename TBody>
+  void
+  ForEachPosition(size_t begin, size_t end, TBody && body) const
+  {
+    if (begin >= end)
+    {
+      return;
+    }
+    IndexType idx = m_Grid.Index(begin);
+    double    x[D];
+    Position(idx, x);
+    for (size_t p = begin; p < end;)
+    {
+      const size_t rowEnd = std::min(end, p + m_Grid.size[0] - static_cast<size_t>(idx[0]));
+      for (; p < rowEnd; ++p, ++idx[0])
+      {
+        x[0] = static_cast<double>(idx[0]) * m_Grid.spacing[0];
+        body(p, static_cast<const double *>(x));
+      }
+      idx[0] = 0;
+      for (unsigned int k = 1; k < D; ++k)
+      {
+        if (++idx[k] < static_cast<int64_t>(m_Grid.size[k]))
+        {
+          break;
+        }
+        idx[k] = 0;
+      }
+      Position(idx, x);
     }
   }
 
