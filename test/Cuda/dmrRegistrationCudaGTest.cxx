@@ -23,6 +23,7 @@
 #include "dmrRegistrationBackend.h"
 #include "gtest/gtest.h"
 #include <cmath>
+#include <cstring>
 #include <iostream>
 
 namespace
@@ -335,6 +336,17 @@ StagesAgree(unsigned int nodes, unsigned int n)
   }
   EXPECT_GT(maxNodal, 0.0);
   EXPECT_LE(maxNodalDiff, 1e-9 * maxNodal);
+  // deterministic: the gather's fixed-point sums and the force's per-block partials do not depend on the order in
+  // which the parallel additions happen, so a second evaluation is identical bit for bit
+  std::vector<double> again(gpuNodal.size());
+  ASSERT_TRUE(context.GatherForce(grid.PixelVolume(), again.data()).Ok());
+  EXPECT_EQ(std::memcmp(again.data(), gpuNodal.data(), again.size() * sizeof(double)), 0) << "gather not repeatable";
+  itk::dmr::cuda::ForceStatistics statisticsAgain;
+  ASSERT_TRUE(context.ComputeForce(statisticsAgain, true).Ok());
+  EXPECT_EQ(statisticsAgain.mssd, statistics.mssd);
+  EXPECT_EQ(statisticsAgain.ssd, statistics.ssd);
+  EXPECT_EQ(statisticsAgain.sumSquaredForce, statistics.sumSquaredForce);
+  EXPECT_EQ(statisticsAgain.inside, statistics.inside);
 
   ElasticSolveAgrees<D>(context, mesh);
 

@@ -18,7 +18,8 @@
 /** GPU registration iteration: force over the pyramid + density, element rasterisation (barycentric owner), force
  * gathering, nodal sampling, interpolation, exponential map by scaling and squaring and composition. Every kernel
  * mirrors the CPU reference (DensityFieldFilter, BarycentricMap, dmrFieldOps) in double arithmetic; the library
- * compiles these files with --fmad=false so products are rounded as on the CPU. */
+ * compiles these files with --fmad=false so products are rounded as on the CPU. Every reduction is deterministic:
+ * per-block partials summed in a fixed order, maxima, or (the force gather) 64-bit fixed-point sums. */
 #include "dmrRegistrationBackend.h"
 #include "dmrCudaUtils.cuh"
 
@@ -154,6 +155,32 @@ BlockSum(double v, double * shared)
   return s;
 }
 
+/** Largest v over the block (every thread must call; v >= 0); valid in thread 0. */
+__device__ inline double
+BlockMax(double v, double * shared)
+{
+  for (int o = 16; o > 0; o >>= 1)
+  {
+    v = fmax(v, __shfl_down_sync(0xffffffffu, v, o));
+  }
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  __syncthreads(); // shared may still be read from an earlier call
+  if (lane == 0)
+  {
+    shared[warp] = v;
+  }
+  __syncthreads();
+  double m = 0.0;
+  if (threadIdx.x == 0)
+  {
+    for (int w = 0; w < static_cast<int>(blockDim.x >> 5); ++w)
+    {
+      m = fmax(m, shared[w]);
+    }
+  }
+  return m;
+}
+
 /** atomic max of a non-negative double (its bit pattern orders like the value). */
 __device__ inline void
 AtomicMaxNonNegative(unsigned long long * address, double v)
@@ -278,10 +305,11 @@ ForceKernel(DeviceGrid      g,
   const double d = BlockSum(inside, shared);
   if (threadIdx.x == 0)
   {
-    atomicAdd(sums + 0, a);
-    atomicAdd(sums + 1, b);
-    atomicAdd(sums + 2, c);
-    atomicAdd(sums + 3, d);
+    // per-block partials, summed in block order on the host: deterministic, unlike atomics
+    sums[4 * blockIdx.x + 0] = a;
+    sums[4 * blockIdx.x + 1] = b;
+    sums[4 * blockIdx.x + 2] = c;
+    sums[4 * blockIdx.x + 3] = d;
   }
 }
 
@@ -338,21 +366,18 @@ Weights(const double * affine, const double * spacing, const int * idx, float * 
   }
 }
 
-/** Walks the pixels an element may own, row by row (BarycentricMap::Build's spans): one warp per row, lanes along
- * the row. body(p, idx) is called for every pixel of the span that passes the inside test. */
+/** The pixels of one row of an element's bounding box that lie in the element (BarycentricMap::Build's spans and
+ * inside test): body(p) for each. row numbers the box's rows along axes 1..D-1. */
 template <int D, typename TBody>
 __device__ inline void
-ForEachPixelInElement(const DeviceGrid & g, const double * affine, const long long * bounds, TBody && body)
+ForEachPixelInElementRow(const DeviceGrid & g, const double * affine, const long long * bounds, long long row,
+                         TBody && body)
 {
   long long lo[D], hi[D];
   for (int k = 0; k < D; ++k)
   {
     lo[k] = bounds[k];
     hi[k] = bounds[D + k];
-  }
-  if (lo[0] > hi[0])
-  {
-    return;
   }
   double slope[D + 1], scale[D + 1];
   slope[0] = 0.0;
@@ -368,75 +393,90 @@ ForEachPixelInElement(const DeviceGrid & g, const double * affine, const long lo
     }
     scale[0] += scale[r + 1];
   }
-  long long rows = 1;
+  int       idx[D];
+  long long rest = row;
   for (int k = 1; k < D; ++k)
   {
-    rows *= hi[k] - lo[k] + 1;
+    const long long extent = hi[k] - lo[k] + 1;
+    idx[k] = static_cast<int>(lo[k] + rest % extent);
+    rest /= extent;
   }
-  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
-  for (long long row = warp; row < rows; row += warps)
+  idx[0] = static_cast<int>(lo[0]);
+  double lambda[D + 1];
+  Barycentric<D>(affine, g.spacing, idx, lambda);
+  double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
+  for (int v = 0; v <= D; ++v)
   {
-    int       idx[D];
-    long long rest = row;
-    for (int k = 1; k < D; ++k)
+    if (fabs(slope[v]) <= 1e-9 * scale[v])
     {
-      const long long extent = hi[k] - lo[k] + 1;
-      idx[k] = static_cast<int>(lo[k] + rest % extent);
-      rest /= extent;
+      if (lambda[v] < -1e-6)
+      {
+        return; // this coordinate does not change along the row and is negative: the row misses the element
+      }
+      continue;
     }
-    idx[0] = static_cast<int>(lo[0]);
-    double lambda[D + 1];
+    const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
+    if (slope[v] > 0.0)
+    {
+      first = fmax(first, floor(at) - 1.0);
+    }
+    else
+    {
+      last = fmin(last, ceil(at) + 1.0);
+    }
+  }
+  long long base = 0;
+  for (int k = 1; k < D; ++k)
+  {
+    base += static_cast<long long>(idx[k]) * g.stride[k];
+  }
+  for (long long x = static_cast<long long>(first); x <= static_cast<long long>(last); ++x)
+  {
+    idx[0] = static_cast<int>(x);
     Barycentric<D>(affine, g.spacing, idx, lambda);
-    double first = static_cast<double>(lo[0]), last = static_cast<double>(hi[0]);
-    bool   empty = false;
+    bool inside = true;
     for (int v = 0; v <= D; ++v)
     {
-      if (fabs(slope[v]) <= 1e-9 * scale[v])
-      {
-        empty = empty || lambda[v] < -1e-6;
-        continue;
-      }
-      const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
-      if (slope[v] > 0.0)
-      {
-        first = fmax(first, floor(at) - 1.0);
-      }
-      else
-      {
-        last = fmin(last, ceil(at) + 1.0);
-      }
+      inside = inside && lambda[v] >= -1e-9;
     }
-    const long long rowEnd = empty ? lo[0] - 1 : static_cast<long long>(last);
-    long long       base = 0;
-    for (int k = 1; k < D; ++k)
+    if (inside)
     {
-      base += static_cast<long long>(idx[k]) * g.stride[k];
-    }
-    for (long long x = static_cast<long long>(first) + lane; x <= rowEnd; x += 32)
-    {
-      idx[0] = static_cast<int>(x);
-      Barycentric<D>(affine, g.spacing, idx, lambda);
-      bool inside = true;
-      for (int v = 0; v <= D; ++v)
-      {
-        inside = inside && lambda[v] >= -1e-9;
-      }
-      if (inside)
-      {
-        body(base + x, idx);
-      }
+      body(base + x);
     }
   }
 }
 
+/** owner[p] = the lowest element containing pixel p. One thread per row of an element's bounding box (rowStart: the
+ * elements' first rows, a prefix sum over the elements): the work is spread evenly whatever the element sizes. */
 template <int D>
 __global__ void
-RasteriseKernel(DeviceGrid g, long long nElements, const double * affine, const long long * bounds, int * owner)
+RasteriseKernel(DeviceGrid        g,
+                long long         nElements,
+                const long long * rowStart,
+                const double *    affine,
+                const long long * bounds,
+                int *             owner)
 {
-  for (long long e = blockIdx.x; e < nElements; e += gridDim.x)
+  const long long rows = rowStart[nElements];
+  for (long long r = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; r < rows;
+       r += static_cast<long long>(gridDim.x) * blockDim.x)
   {
-    const int mine = static_cast<int>(e);
-    ForEachPixelInElement<D>(g, affine + e * (D * D + D), bounds + e * 2 * D, [&](long long p, const int *) {
+    // the element of row r: the last e with rowStart[e] <= r
+    long long lo = 0, hi = nElements - 1;
+    while (lo < hi)
+    {
+      const long long mid = (lo + hi + 1) / 2;
+      if (rowStart[mid] <= r)
+      {
+        lo = mid;
+      }
+      else
+      {
+        hi = mid - 1;
+      }
+    }
+    const int mine = static_cast<int>(lo);
+    ForEachPixelInElementRow<D>(g, affine + lo * (D * D + D), bounds + lo * 2 * D, r - rowStart[lo], [&](long long p) {
       atomicMin(owner + p, mine);
     });
   }
@@ -455,72 +495,136 @@ CoverageKernel(const int * owner, long long n, unsigned long long * firstUncover
   }
 }
 
-/** Per element: sum over its pixels of phi_v(x) f_k(x) (deterministic: a fixed reduction tree per element). */
+/** The largest |f_i| of the force field, as the bit pattern of a non-negative double in *maximum (which must start
+ * at 0). The gather's fixed-point quantum is derived from it. */
+__global__ void
+MaxAbsKernel(const float * f, long long n, unsigned long long * maximum)
+{
+  float m = 0.0f;
+  for (long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; i < n;
+       i += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    m = isfinite(f[i]) ? fmaxf(m, fabsf(f[i])) : INFINITY; // a NaN or infinite force makes the maximum infinite
+  }
+  __shared__ double shared[Threads / 32];
+  const double      b = BlockMax(m, shared);
+  if (threadIdx.x == 0)
+  {
+    AtomicMaxNonNegative(maximum, b); // one atomic per block: per warp they serialise on one address
+  }
+}
+
+/** The power of two q such that every partial sum of the gather, at most n terms of magnitude at most maxAbs, stays
+ * below 2^62 q: the gather's fixed-point quantum (0 when there is no force, NaN when the force is not finite). */
+__device__ inline double
+GatherQuantum(double maxAbs, long long n)
+{
+  if (!isfinite(maxAbs))
+  {
+    return NAN;
+  }
+  if (!(maxAbs > 0.0))
+  {
+    return 0.0;
+  }
+  int exponent = 0;
+  frexp(maxAbs * static_cast<double>(n), &exponent); // maxAbs n < 2^exponent
+  return ldexp(1.0, exponent - 62);
+}
+
+/** The consistent load vector sum_x phi_a(x) f(x) in fixed point: every term phi_v(x) f_k(x) is rounded to a multiple
+ * of the quantum and added as a 64-bit integer, so the sums do not depend on the order of the additions and the
+ * result is deterministic although the pixels run in parallel. One warp takes 32 consecutive pixels; the lanes of a
+ * run with the same owner element sum their terms (segmented scan), and the run's last lane adds them to the element's
+ * nodes: a few atomics per warp instead of one per pixel. sums (nNodes x D) must start at 0. */
 template <int D>
 __global__ void
-GatherElementsKernel(DeviceGrid     g,
-                     long long      nElements,
-                     const double * affine,
-                     const long long * bounds,
-                     const int *    owner,
-                     const float *  force,
-                     double *       partial)
+GatherPixelsKernel(DeviceGrid                 g,
+                   const int *                owner,
+                   const double *             affine,
+                   const int *                elements,
+                   const float *              force,
+                   const unsigned long long * maxAbsBits,
+                   unsigned long long *       sums)
 {
-  constexpr int NV = (D + 1) * D;
-  __shared__ double shared[Threads / 32];
-  for (long long e = blockIdx.x; e < nElements; e += gridDim.x)
+  const double quantum = GatherQuantum(__longlong_as_double(static_cast<long long>(*maxAbsBits)), g.n);
+  if (quantum == 0.0 || !isfinite(quantum))
   {
-    const double * a = affine + e * (D * D + D);
-    double         acc[NV] = {};
-    const int      mine = static_cast<int>(e);
-    ForEachPixelInElement<D>(g, a, bounds + e * 2 * D, [&](long long p, const int * idx) {
-      if (owner[p] != mine)
-      {
-        return;
-      }
+    return;
+  }
+  const double   inverse = 1.0 / quantum; // a power of two: scaling by it is exact
+  const int      lane = threadIdx.x & 31;
+  const unsigned below = (1u << lane) - 1u;
+  for (long long base = blockIdx.x * static_cast<long long>(blockDim.x) + (threadIdx.x & ~31); base < g.n;
+       base += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    const long long p = base + lane;
+    const int       e = p < g.n ? owner[p] : -1;
+    long long       term[(D + 1) * D];
+    if (e >= 0 && e != INT_MAX)
+    {
+      int idx[D];
+      IndexOf<D>(g, p, idx);
       float wt[D + 1];
-      Weights<D>(a, g.spacing, idx, wt);
+      Weights<D>(affine + static_cast<long long>(e) * (D * D + D), g.spacing, idx, wt);
       for (int v = 0; v <= D; ++v)
       {
-        const double w = wt[v];
         for (int k = 0; k < D; ++k)
         {
-          acc[v * D + k] += w * force[p * D + k];
+          // the CPU's term (float weight times float force, in double), rounded to the quantum
+          term[v * D + k] = llrint(static_cast<double>(wt[v]) * static_cast<double>(force[p * D + k]) * inverse);
         }
       }
-    });
-    for (int i = 0; i < NV; ++i)
+    }
+    else
     {
-      const double s = BlockSum(acc[i], shared);
-      if (threadIdx.x == 0)
+      for (int i = 0; i < (D + 1) * D; ++i)
       {
-        partial[e * NV + i] = s;
+        term[i] = 0;
+      }
+    }
+    // runs of lanes with the same owner: the first lane of each run is a head
+    const int      previous = __shfl_up_sync(0xffffffffu, e, 1);
+    const bool     head = lane == 0 || previous != e;
+    const unsigned heads = __ballot_sync(0xffffffffu, head);
+    const int      runStart = 31 - __clz(heads & (below | (1u << lane)));
+    for (int o = 1; o < 32; o <<= 1)
+    {
+      for (int i = 0; i < (D + 1) * D; ++i)
+      {
+        const long long t = __shfl_up_sync(0xffffffffu, term[i], o);
+        term[i] += lane - o >= runStart ? t : 0;
+      }
+    }
+    const bool tail = lane == 31 || ((heads >> (lane + 1)) & 1u);
+    if (tail && e >= 0 && e != INT_MAX)
+    {
+      for (int v = 0; v <= D; ++v)
+      {
+        const long long node = elements[static_cast<long long>(e) * (D + 1) + v];
+        for (int k = 0; k < D; ++k)
+        {
+          if (term[v * D + k] != 0)
+          {
+            atomicAdd(sums + node * D + k, static_cast<unsigned long long>(term[v * D + k])); // two's complement
+          }
+        }
       }
     }
   }
 }
 
-/** nodal[a] = scale x sum over the elements incident to node a (CSR, element order) of their partial sums. */
-template <int D>
+/** nodal = scale x quantum x sums (NaN everywhere when the force is not finite). */
 __global__ void
-GatherNodesKernel(long long nNodes, const int * start, const int * incidence, const double * partial, double scale, double * nodal)
+GatherFinishKernel(long long n, const unsigned long long * sums, const unsigned long long * maxAbsBits, long long pixels,
+                   double scale, double * nodal)
 {
-  for (long long a = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; a < nNodes;
-       a += static_cast<long long>(gridDim.x) * blockDim.x)
+  const double maxAbs = __longlong_as_double(static_cast<long long>(*maxAbsBits));
+  const double quantum = GatherQuantum(maxAbs, pixels);
+  for (long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; i < n;
+       i += static_cast<long long>(gridDim.x) * blockDim.x)
   {
-    double s[D] = {};
-    for (int i = start[a]; i < start[a + 1]; ++i)
-    {
-      const int slot = incidence[i]; // element * (D + 1) + vertex
-      for (int k = 0; k < D; ++k)
-      {
-        s[k] += partial[static_cast<long long>(slot) * D + k];
-      }
-    }
-    for (int k = 0; k < D; ++k)
-    {
-      nodal[a * D + k] = scale * s[k];
-    }
+    nodal[i] = isfinite(maxAbs) ? scale * (quantum * static_cast<double>(static_cast<long long>(sums[i]))) : NAN;
   }
 }
 
@@ -605,15 +709,13 @@ NormsKernel(DeviceGrid g, const float * v, unsigned long long * maxima)
       }
     }
   }
-  for (int o = 16; o > 0; o >>= 1)
+  __shared__ double shared[Threads / 32];
+  const double      b0 = BlockMax(m0, shared);
+  const double      b1 = BlockMax(m1, shared);
+  if (threadIdx.x == 0)
   {
-    m0 = fmax(m0, __shfl_down_sync(0xffffffffu, m0, o));
-    m1 = fmax(m1, __shfl_down_sync(0xffffffffu, m1, o));
-  }
-  if ((threadIdx.x & 31) == 0)
-  {
-    AtomicMaxNonNegative(maxima, m0);
-    AtomicMaxNonNegative(maxima + 1, m1);
+    AtomicMaxNonNegative(maxima, b0);
+    AtomicMaxNonNegative(maxima + 1, b1);
   }
 }
 
@@ -978,6 +1080,14 @@ GridBlocks(long long n)
   return static_cast<unsigned int>(std::max<long long>(1, std::min<long long>(blocks, 65535LL * 8)));
 }
 
+/** Blocks of a grid-stride reduction into one address (one atomic per block): about as many threads as the device
+ * keeps resident, not one block per 256 items, so that the atomics do not queue up. */
+unsigned int
+ReductionBlocks(long long n)
+{
+  return std::min(GridBlocks(n), 1024u);
+}
+
 /** The device mesh and element data the elastic operator reads. */
 struct ElasticOperator
 {
@@ -1027,8 +1137,9 @@ struct RegistrationContext::Impl
   DeviceBuffer<unsigned long long> scratch64;
   // mesh
   size_t                           numberOfNodes{ 0 }, numberOfElements{ 0 };
-  DeviceBuffer<double>             nodes, affine, partial, nodal;
-  DeviceBuffer<long long>          bounds;
+  DeviceBuffer<double>             nodes, affine, nodal;
+  DeviceBuffer<unsigned long long> nodalSums; // the gather's fixed-point accumulators
+  DeviceBuffer<long long>          bounds, rowStart;
   DeviceBuffer<int>                elements, incidenceStart, incidence;
   std::vector<int>                 hostStart, hostIncidence;
   // linear elasticity (SetElasticity / SolveElasticity): element gradients and volumes, stresses, CG vectors
@@ -1060,8 +1171,9 @@ struct RegistrationContext::Impl
       }
     }
     s += mask.Size() + (w.Size() + bufferA.Size() + bufferB.Size() + force.Size() + density.Size()) * sizeof(float);
-    s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + partial.Size() + nodal.Size()) * sizeof(double);
-    s += bounds.Size() * sizeof(long long) + (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
+    s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + nodal.Size()) * sizeof(double) +
+         nodalSums.Size() * sizeof(unsigned long long);
+    s += (bounds.Size() + rowStart.Size()) * sizeof(long long) + (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
     s += fixedNodes.Size() + cgState.Size() * sizeof(int);
     for (const auto * b : { &geometry, &stress, &inverseDiagonal, &cgX, &cgR, &cgZ, &cgP, &cgQ, &cgPartials, &cgScalars })
     {
@@ -1167,7 +1279,7 @@ RegistrationContext::Initialize(unsigned int                          dimension,
     m.force.Resize(n * D);
     m.density.Resize(n);
     m.owner.Resize(n);
-    m.sums.Resize(4);
+    m.sums.Resize(4 * 1024); // ForceKernel's per-block partials (ReductionBlocks)
     m.scratch64.Resize(2);
     Check(cudaDeviceSynchronize(), "Initialize");
     m.allocated = std::max(m.allocated, m.Bytes());
@@ -1179,9 +1291,8 @@ RegistrationContext::ComputeForce(ForceStatistics & statistics, bool warpedGradi
 {
   return Guard([&] {
     Impl & m = *m_Impl;
-    m.sums.Zero();
     const uint8_t * mask = m.hasMask ? m.mask.Data() : nullptr;
-    const unsigned  blocks = GridBlocks(m.grid.n);
+    const unsigned  blocks = ReductionBlocks(m.grid.n);
     if (m.dimension == 2)
     {
       ForceKernel<2><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
@@ -1191,8 +1302,16 @@ RegistrationContext::ComputeForce(ForceStatistics & statistics, bool warpedGradi
       ForceKernel<3><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
     }
     CheckLaunch("ForceKernel");
-    double host[4];
-    m.sums.Download(host, 4);
+    std::vector<double> partial(4 * blocks);
+    m.sums.Download(partial.data(), partial.size());
+    double host[4] = { 0.0, 0.0, 0.0, 0.0 };
+    for (unsigned int b = 0; b < blocks; ++b)
+    {
+      for (unsigned int i = 0; i < 4; ++i)
+      {
+        host[i] += partial[4 * b + i];
+      }
+    }
     statistics.mssd = host[0];
     statistics.ssd = host[1];
     statistics.sumSquaredForce = host[2];
@@ -1251,7 +1370,7 @@ RegistrationContext::SetMesh(const double *  nodes,
     m.affine.Upload(affine, numberOfElements * (D * D + D));
     static_assert(sizeof(long long) == sizeof(int64_t), "64-bit bounds");
     m.bounds.Upload(reinterpret_cast<const long long *>(bounds), numberOfElements * 2 * D);
-    m.partial.Reserve(numberOfElements * (D + 1) * D);
+    m.nodalSums.Reserve(numberOfNodes * D);
     m.nodal.Reserve(numberOfNodes * D);
     // node -> (element, vertex) incidence in element order, for a deterministic nodal sum
     m.hostStart.assign(numberOfNodes + 1, 0);
@@ -1279,14 +1398,27 @@ RegistrationContext::SetMesh(const double *  nodes,
 
     FillKernel<<<GridBlocks(m.grid.n), Threads>>>(m.owner.Data(), m.grid.n, INT_MAX);
     CheckLaunch("FillKernel");
-    const unsigned elementBlocks = static_cast<unsigned>(std::min<size_t>(numberOfElements, 65535u * 8));
+    // the first row of every element's bounding box in one numbering (an empty box, lo > hi, has no row)
+    std::vector<long long> rowStart(numberOfElements + 1, 0);
+    for (size_t e = 0; e < numberOfElements; ++e)
+    {
+      const int64_t * b = bounds + e * 2 * D;
+      long long       rows = b[0] <= b[D] ? 1 : 0;
+      for (size_t k = 1; k < D; ++k)
+      {
+        rows *= std::max<long long>(0, b[D + k] - b[k] + 1);
+      }
+      rowStart[e + 1] = rowStart[e] + rows;
+    }
+    m.rowStart.Upload(rowStart.data(), rowStart.size());
+    const unsigned rowBlocks = GridBlocks(rowStart.back());
     if (D == 2)
     {
-      RasteriseKernel<2><<<elementBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+      RasteriseKernel<2><<<rowBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
     }
     else
     {
-      RasteriseKernel<3><<<elementBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+      RasteriseKernel<3><<<rowBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
     }
     CheckLaunch("RasteriseKernel");
     const unsigned long long none = ~0ULL;
@@ -1462,22 +1594,23 @@ RegistrationContext::GatherForce(double scale, double * nodal)
 {
   return Guard([&] {
     Impl &          m = *m_Impl;
-    const long long ne = static_cast<long long>(m.numberOfElements);
-    const unsigned  elementBlocks = static_cast<unsigned>(std::min<long long>(ne, 65535LL * 8));
-    const unsigned  nodeBlocks = GridBlocks(static_cast<long long>(m.numberOfNodes));
+    const long long nd = static_cast<long long>(m.numberOfNodes * m.dimension);
+    Check(cudaMemsetAsync(m.scratch64.Data(), 0, sizeof(unsigned long long)), "gather reset");
+    Check(cudaMemsetAsync(m.nodalSums.Data(), 0, static_cast<size_t>(nd) * sizeof(unsigned long long)), "gather reset");
+    MaxAbsKernel<<<ReductionBlocks(m.grid.n * m.dimension), Threads>>>(m.force.Data(), m.grid.n * m.dimension, m.scratch64.Data());
+    CheckLaunch("MaxAbsKernel");
+    const unsigned blocks = GridBlocks(m.grid.n);
     if (m.dimension == 2)
     {
-      GatherElementsKernel<2><<<elementBlocks, Threads>>>(m.grid, ne, m.affine.Data(), m.bounds.Data(), m.owner.Data(), m.force.Data(), m.partial.Data());
-      CheckLaunch("GatherElementsKernel");
-      GatherNodesKernel<2><<<nodeBlocks, Threads>>>(static_cast<long long>(m.numberOfNodes), m.incidenceStart.Data(), m.incidence.Data(), m.partial.Data(), scale, m.nodal.Data());
+      GatherPixelsKernel<2><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.force.Data(), m.scratch64.Data(), m.nodalSums.Data());
     }
     else
     {
-      GatherElementsKernel<3><<<elementBlocks, Threads>>>(m.grid, ne, m.affine.Data(), m.bounds.Data(), m.owner.Data(), m.force.Data(), m.partial.Data());
-      CheckLaunch("GatherElementsKernel");
-      GatherNodesKernel<3><<<nodeBlocks, Threads>>>(static_cast<long long>(m.numberOfNodes), m.incidenceStart.Data(), m.incidence.Data(), m.partial.Data(), scale, m.nodal.Data());
+      GatherPixelsKernel<3><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.force.Data(), m.scratch64.Data(), m.nodalSums.Data());
     }
-    CheckLaunch("GatherNodesKernel");
+    CheckLaunch("GatherPixelsKernel");
+    GatherFinishKernel<<<GridBlocks(nd), Threads>>>(nd, m.nodalSums.Data(), m.scratch64.Data(), m.grid.n, scale, m.nodal.Data());
+    CheckLaunch("GatherFinishKernel");
     m.nodal.Download(nodal, m.numberOfNodes * m.dimension);
   });
 }
@@ -1517,13 +1650,13 @@ RegistrationContext::ApplyUpdate(const double * nodalU, double scale, double & m
     {
       InterpolateKernel<2><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
       CheckLaunch("InterpolateKernel");
-      NormsKernel<2><<<blocks, Threads>>>(m.grid, a, m.scratch64.Data());
+      NormsKernel<2><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
     }
     else
     {
       InterpolateKernel<3><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
       CheckLaunch("InterpolateKernel");
-      NormsKernel<3><<<blocks, Threads>>>(m.grid, a, m.scratch64.Data());
+      NormsKernel<3><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
     }
     CheckLaunch("NormsKernel");
     unsigned long long bits[2];

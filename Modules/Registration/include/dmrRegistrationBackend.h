@@ -126,7 +126,10 @@ public:
   /** Host copy of the owning element of every pixel. */
   Status
   DownloadElementOfPixels(int32_t * host) const;
-  /** nodal[a * D + k] = scale x sum_x phi_a(x) f_k(x) (consistent load vector of the last force). */
+  /** nodal[a * D + k] = scale x sum_x phi_a(x) f_k(x) (consistent load vector of the last force). Deterministic: every
+   * term is rounded to a power of two q with max|f| x pixels < 2^62 q and summed as a 64-bit integer (so the order of
+   * the parallel additions does not matter; each term is off by at most q / 2, far below the double rounding of the
+   * CPU's sum for any real image). A force that is not finite gives NaN everywhere. */
   Status
   GatherForce(double scale, double * nodal);
   /** nodal[a * D + k] = w_k at node a (multilinear, clamped). */
