@@ -129,13 +129,15 @@ InterpolateAdd(const int * size, const long long * stride, const float * data, c
   }
 }
 
-/** Sum of v over the block (every thread must call); valid in thread 0. */
+/** combine(v over the block) with a fixed tree (every thread must call); valid in thread 0. The shuffle tree within
+ * each warp, then the warps in order from `identity`: the same operations, hence the same result, on every call. */
+template <typename TCombine>
 __device__ inline double
-BlockSum(double v, double * shared)
+BlockCombine(double v, double * shared, double identity, TCombine combine)
 {
   for (int o = 16; o > 0; o >>= 1)
   {
-    v += __shfl_down_sync(0xffffffffu, v, o);
+    v = combine(v, __shfl_down_sync(0xffffffffu, v, o));
   }
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
   __syncthreads(); // shared may still be read from an earlier call
@@ -144,41 +146,29 @@ BlockSum(double v, double * shared)
     shared[warp] = v;
   }
   __syncthreads();
-  double s = 0.0;
+  double s = identity;
   if (threadIdx.x == 0)
   {
     for (int w = 0; w < static_cast<int>(blockDim.x >> 5); ++w)
     {
-      s += shared[w];
+      s = combine(s, shared[w]);
     }
   }
   return s;
+}
+
+/** Sum of v over the block (every thread must call); valid in thread 0. */
+__device__ inline double
+BlockSum(double v, double * shared)
+{
+  return BlockCombine(v, shared, 0.0, [](double a, double b) { return a + b; });
 }
 
 /** Largest v over the block (every thread must call; v >= 0); valid in thread 0. */
 __device__ inline double
 BlockMax(double v, double * shared)
 {
-  for (int o = 16; o > 0; o >>= 1)
-  {
-    v = fmax(v, __shfl_down_sync(0xffffffffu, v, o));
-  }
-  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-  __syncthreads(); // shared may still be read from an earlier call
-  if (lane == 0)
-  {
-    shared[warp] = v;
-  }
-  __syncthreads();
-  double m = 0.0;
-  if (threadIdx.x == 0)
-  {
-    for (int w = 0; w < static_cast<int>(blockDim.x >> 5); ++w)
-    {
-      m = fmax(m, shared[w]);
-    }
-  }
-  return m;
+  return BlockCombine(v, shared, 0.0, [](double a, double b) { return fmax(a, b); });
 }
 
 /** atomic max of a non-negative double (its bit pattern orders like the value). */
