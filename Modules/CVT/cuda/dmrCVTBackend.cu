@@ -22,7 +22,7 @@
  *     writes a flag and, where flagged, the proposal at the pixel's slot. Also clears the batch scratch.
  *  2. cub::DeviceSelect::Flagged over the slot numbers: the proposals in pixel order and their number (on device).
  *  3. Count/Allocate/Scatter: for each cell touched by the batch, the list of (proposal, side) entries.
- *  4. Cell: one thread per touched cell sorts its entries by proposal index and sums the deltas of mass, first
+ *  4. Cell: one warp per touched cell sorts its entries by proposal index (by rank) and sums the deltas of mass, first
  *     moment about the old centroid and second moment in that order (DiscreteCVT::JointEnergyChange's order).
  *  5. Decide (one block): the joint change dE as a fixed-order reduction of the cells' terms; commit if dE < 0.
  *  6. Commit: labels, masses, centroids (energy and swap count in Decide).
@@ -468,8 +468,12 @@ ScatterKernel(SweepState *     state,
   }
 }
 
-/** Per touched cell: the deltas of DiscreteCVT::JointEnergyChange summed in proposal order, and the cell's term
- * dQ - |dS|^2 / (m + dm) of the joint change. */
+/** Per touched cell, one warp: the deltas of DiscreteCVT::JointEnergyChange summed in proposal order, and the
+ * cell's term dQ - |dS|^2 / (m + dm) of the joint change.
+ * The cell's entries (unique: a proposal touches a cell once) are placed by rank into `sorted`, which orders them by
+ * proposal index. The lanes then compute the terms w, w (x - r)_k and w |x - r|^2 of 32 entries at a time, and
+ * every lane adds them up in entry order from shuffles: the same products added in the same order as the CPU, so
+ * the sums are bit-identical, while the loads of an entry's proposal and density overlap across the lanes. */
 template<unsigned int D>
 __global__ void
 CellKernel(GridParams       g,
@@ -481,7 +485,8 @@ CellKernel(GridParams       g,
            const int32_t *  count,
            const int32_t *  touched,
            const int32_t *  segment,
-           int32_t *        entries,
+           const int32_t *  entries,
+           int32_t *        sorted,
            double *         deltaMass,
            double *         deltaMoment,
            double *         term)
@@ -491,23 +496,26 @@ CellKernel(GridParams       g,
   {
     return;
   }
-  const int32_t n = state->numberOfTouched;
-  for (int32_t j = blockIdx.x * blockDim.x + threadIdx.x; j < n; j += gridDim.x * blockDim.x)
+  const int32_t      n = state->numberOfTouched;
+  const unsigned int lane = threadIdx.x % 32;
+  const int32_t      warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
+  for (int32_t j = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); j < n; j += warps)
   {
-    const int32_t c = touched[j];
-    int32_t *     e = entries + segment[c];
-    const int32_t len = count[c];
-    for (int32_t a = 1; a < len; ++a) // insertion sort: segments are short
+    const int32_t   c = touched[j];
+    const int32_t * e = entries + segment[c];
+    int32_t *       out = sorted + segment[c];
+    const int32_t   len = count[c];
+    for (int32_t a = static_cast<int32_t>(lane); a < len; a += 32)
     {
       const int32_t v = e[a];
-      int32_t       b = a - 1;
-      while (b >= 0 && e[b] > v)
+      int32_t       rank = 0;
+      for (int32_t b = 0; b < len; ++b)
       {
-        e[b + 1] = e[b];
-        --b;
+        rank += e[b] < v ? 1 : 0;
       }
-      e[b + 1] = v;
+      out[rank] = v;
     }
+    __syncwarp();
     double r[D], dS[D];
     for (unsigned int k = 0; k < D; ++k)
     {
@@ -515,33 +523,55 @@ CellKernel(GridParams       g,
       dS[k] = 0.0;
     }
     double dm = 0.0, dQ = 0.0;
-    for (int32_t a = 0; a < len; ++a)
+    for (int32_t base = 0; base < len; base += 32)
     {
-      const Proposal & prop = proposals[e[a] >> 1];
-      const double     wp = static_cast<double>(density[prop.pixel]);
-      const double     w = (e[a] & 1) ? wp : -wp;
-      int32_t          idx[D];
-      double           x[D];
-      IndexOf<D>(g, static_cast<int32_t>(prop.pixel), idx);
-      PositionOf<D>(g, idx, x);
-      double d2 = 0.0;
+      const int32_t a = base + static_cast<int32_t>(lane);
+      double        w = 0.0, wd[D], wd2 = 0.0;
       for (unsigned int k = 0; k < D; ++k)
       {
-        const double d = x[k] - r[k];
-        dS[k] += w * d;
-        d2 += d * d;
+        wd[k] = 0.0;
       }
-      dm += w;
-      dQ += w * d2;
+      if (a < len)
+      {
+        const int32_t    entry = out[a];
+        const Proposal & prop = proposals[entry >> 1];
+        const double     wp = static_cast<double>(density[prop.pixel]);
+        w = (entry & 1) ? wp : -wp;
+        int32_t idx[D];
+        double  x[D];
+        IndexOf<D>(g, static_cast<int32_t>(prop.pixel), idx);
+        PositionOf<D>(g, idx, x);
+        double d2 = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          const double d = x[k] - r[k];
+          wd[k] = w * d;
+          d2 += d * d;
+        }
+        wd2 = w * d2;
+      }
+      const int32_t valid = min(32, len - base);
+      for (int32_t t = 0; t < valid; ++t)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          dS[k] += __shfl_sync(0xffffffffu, wd[k], t);
+        }
+        dm += __shfl_sync(0xffffffffu, w, t);
+        dQ += __shfl_sync(0xffffffffu, wd2, t);
+      }
     }
-    double s2 = 0.0;
-    for (unsigned int k = 0; k < D; ++k)
+    if (lane == 0)
     {
-      s2 += dS[k] * dS[k];
-      deltaMoment[c * D + k] = dS[k];
+      double s2 = 0.0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        s2 += dS[k] * dS[k];
+        deltaMoment[c * D + k] = dS[k];
+      }
+      deltaMass[c] = dm;
+      term[c] = dQ - s2 / (mass[c] + dm);
     }
-    deltaMass[c] = dm;
-    term[c] = dQ - s2 / (mass[c] + dm);
   }
 }
 
@@ -823,7 +853,7 @@ struct CVTSwapOptimizer::Impl
   DeviceBuffer<uint32_t>         iota, sortedKeys, sortedPixels;
   size_t                         nCells{ 0 };
   DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
-  DeviceBuffer<int32_t>          counters, segment, touched, entries, cellStart, cellEnd;
+  DeviceBuffer<int32_t>          counters, segment, touched, entries, sortedEntries, cellStart, cellEnd;
   DeviceBuffer<uint8_t>          flags;
   DeviceBuffer<Proposal>         slots, proposals;
   DeviceBuffer<uint32_t>         selected;
@@ -1075,7 +1105,7 @@ struct CVTSwapOptimizer::Impl
     CheckLaunch("ScatterKernel");
     LaunchAfter(CellKernel<D>,
                 strideBlocks,
-                64,
+                128,
                 stream,
                 grid,
                 state.Data(),
@@ -1087,6 +1117,7 @@ struct CVTSwapOptimizer::Impl
                 touched.Data(),
                 segment.Data(),
                 entries.Data(),
+                sortedEntries.Data(),
                 deltaMass.Data(),
                 deltaMoment.Data(),
                 term.Data());
@@ -1405,6 +1436,7 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
       m.proposals.Resize(slotsNeeded);
       m.selected.Resize(slotsNeeded);
       m.entries.Resize(2 * slotsNeeded);
+      m.sortedEntries.Resize(2 * slotsNeeded);
       m.state.Resize(1);
       IotaKernel<<<m.strideBlocks, Threads, 0, m.stream>>>(m.iota.Data(), static_cast<int32_t>(n));
       CheckLaunch("IotaKernel");
