@@ -17,20 +17,22 @@
  *=========================================================================*/
 /** CUDA kernels and launchers of the CVT swap optimisation (see dmrCVTBackend.h and dmr::DiscreteCVT<D>).
  *
- * One sub-sweep (one parity colour) is a fixed chain of launches without a host round trip:
+ * One sub-sweep (one parity colour) is a fixed chain of five launches without a host round trip:
  *  1. Propose: one thread per pixel of the colour, against the frozen labels (the rule of DiscreteCVT::BestSwap);
- *     writes a flag and, where flagged, the proposal at the pixel's slot. Also clears the batch scratch.
- *  2. cub::DeviceSelect::Flagged over the slot numbers: the proposals in pixel order and their number (on device).
- *  3. Count/Allocate/Scatter: for each cell touched by the batch, the list of (proposal, side) entries.
- *  4. Cell: one warp per touched cell sorts its entries by proposal index (by rank) and sums the deltas of mass, first
- *     moment about the old centroid and second moment in that order (DiscreteCVT::JointEnergyChange's order).
- *  5. Decide (one block): the joint change dE as a fixed-order reduction of the cells' terms; commit if dE < 0.
- *  6. Commit: labels, masses, centroids (energy and swap count in Decide).
+ *     appends its proposal (one atomic per warp) and counts it for its two cells, listing the touched cells. Two
+ *     counter sets alternate between batches: Propose also clears the previous batch's set.
+ *  2. Allocate/Scatter: for each touched cell, its segment of (proposal, side) entries, keyed by pixel.
+ *  3. Cell: one warp per touched cell orders its entries by key (by rank; pixel order is the CPU's proposal order)
+ *     and sums the deltas of mass, first moment about the old centroid and second moment in that order
+ *     (DiscreteCVT::JointEnergyChange's order).
+ *  4. DecideCommit: every block reduces the cells' terms to the joint change dE in one fixed order (so all blocks
+ *     agree) and, if dE < 0, commits its share: labels, masses, centroids; block 0 records energy and swap count.
  * A whole sweep (all colours, then the copy of SweepState to pinned host memory) is captured once into a CUDA graph
  * and replayed; the host synchronises once per sweep for the stopping rule.
  * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
  * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
- * resumes with the next colour. Counts stay on the device: grid-stride kernels read them from SweepState.
+ * resumes with the next colour (Count, Allocate, Scatter, Cell, Decide, Commit on its sorted halves, entries keyed by
+ * proposal index). Counts stay on the device: grid-stride kernels read them from SweepState.
  *
  * Statistics (SetLabels/KeepLabels): a stable radix sort of the pixels by label gives each cell's pixels in pixel
  * order, summed in that order by one warp per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
@@ -40,8 +42,6 @@
 
 #include <cub/block/block_reduce.cuh>
 #include <cub/device/device_radix_sort.cuh>
-#include <cub/device/device_select.cuh>
-#include <thrust/iterator/counting_iterator.h>
 
 #include <algorithm>
 #include <limits>
@@ -132,7 +132,18 @@ struct Proposal
   double   gain; // -(single-swap energy change) > 0
 };
 
-/** Device-side state of the optimisation (the energy) and of the current sweep; read by the host once per sweep. */
+/** The scalars of one batch (its counter set). */
+struct BatchCounts
+{
+  int32_t numberOfProposals;
+  int32_t numberOfTouched;
+  int32_t cursor; // next free entry of the cells' segments
+  int32_t unused;
+};
+
+/** Device-side state of the optimisation (the energy) and of the current sweep; read by the host once per sweep.
+ * Consecutive batches alternate between two counter sets, so that a batch's Propose can clear the set of the batch
+ * before it (whose kernels have finished) while filling its own: no separate reset launch. */
 struct SweepState
 {
   double             energy;
@@ -140,10 +151,11 @@ struct SweepState
   unsigned long long swaps;  // committed in this sweep
   int32_t            halted; // a batch of this sweep was rejected: later kernels of the sweep do nothing
   int32_t            rejectedColour;
-  int32_t            commit; // the current batch is committed
-  int32_t            numberOfProposals;
-  int32_t            numberOfTouched;
-  int32_t            cursor;
+  int32_t            commit;     // the current batch is committed
+  int32_t            parity;     // the counter set of the current batch
+  int32_t            nextParity; // the counter set of the next batch
+  int32_t            unused;
+  BatchCounts        batch[2];
 };
 
 /** Outcome of the statistics recomputation. */
@@ -275,31 +287,69 @@ LaunchAfter(void (*kernel)(TParams...),
   Check(cudaLaunchKernelEx(&config, kernel, std::forward<TArgs>(args)...), "cudaLaunchKernelEx");
 }
 
-/** Resets the batch scratch (per-cell counters, touched list, segment cursor). */
+/** Reset of a counter set: the counts and fill cursors of every cell and the scalars of the batch. */
 __device__ inline void
-ResetBatch(size_t thread, size_t threads, SweepState * state, int32_t * counters, int32_t nCells)
+ResetSet(size_t thread, size_t threads, BatchCounts & batch, int32_t * set, int32_t nCells, bool keepProposals)
 {
   if (thread == 0)
   {
-    state->numberOfTouched = 0;
-    state->cursor = 0;
-    state->commit = 0;
+    if (!keepProposals)
+    {
+      batch.numberOfProposals = 0;
+    }
+    batch.numberOfTouched = 0;
+    batch.cursor = 0;
   }
   for (size_t c = thread; c < 2 * static_cast<size_t>(nCells); c += threads)
   {
-    counters[c] = 0;
+    set[c] = 0;
   }
 }
 
+/** The counter set of the current batch: per cell its number of entries (count) and, after it, the fill cursors. */
+__device__ inline int32_t *
+CurrentSet(const SweepState * state, int32_t * counters, int32_t nCells)
+{
+  return counters + static_cast<size_t>(state->parity) * 2 * static_cast<size_t>(nCells);
+}
+
+/** Halving path: the current set is cleared for a batch of state->batch[parity].numberOfProposals proposals that the
+ * host has placed in `proposals`. */
 __global__ void
 ResetBatchKernel(SweepState * state, int32_t * counters, int32_t nCells)
 {
   WaitForPrevious();
-  ResetBatch(
-    blockIdx.x * blockDim.x + threadIdx.x, static_cast<size_t>(gridDim.x) * blockDim.x, state, counters, nCells);
+  const size_t thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
+  if (thread == 0)
+  {
+    state->commit = 0;
+  }
+  ResetSet(thread,
+           static_cast<size_t>(gridDim.x) * blockDim.x,
+           state->batch[state->parity],
+           CurrentSet(state, counters, nCells),
+           nCells,
+           true);
 }
 
-/** Phase 1 for one colour (DiscreteCVT::ProposeSwap on every pixel of the colour). */
+/** Touches the cells of proposal `prop`: counts its two entries and lists cells touched for the first time. */
+__device__ inline void
+CountProposal(const Proposal & prop, BatchCounts & batch, int32_t * count, int32_t * touched)
+{
+  for (int side = 0; side < 2; ++side)
+  {
+    const int32_t c = side == 0 ? prop.from : prop.to;
+    if (atomicAdd(&count[c], 1) == 0)
+    {
+      touched[atomicAdd(&batch.numberOfTouched, 1)] = c;
+    }
+  }
+}
+
+/** Phase 1 for one colour (DiscreteCVT::ProposeSwap on every pixel of the colour), appending the proposals (in no
+ * particular order: the cell sums sort their entries by pixel) and counting them per cell.
+ * The batch uses the counter set state->nextParity (it becomes state->parity); the set of the previous batch, whose
+ * kernels have all finished, is cleared here for the next one. */
 template<unsigned int D>
 __global__ void
 ProposeKernel(GridParams      g,
@@ -310,26 +360,36 @@ ProposeKernel(GridParams      g,
               const double *  centroid,
               double          tolerance,
               SweepState *    state,
-              uint8_t *       flags,
-              Proposal *      slots,
+              Proposal *      proposals,
               int32_t *       counters,
+              int32_t *       touched,
               int32_t         nCells)
 {
   WaitForPrevious();
-  const size_t thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
-  ResetBatch(thread, static_cast<size_t>(gridDim.x) * blockDim.x, state, counters, nCells);
+  if (state->halted)
+  {
+    return;
+  }
+  const size_t  thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
+  const int32_t set = state->nextParity; // not written by this kernel
+  if (thread == 0)
+  {
+    state->parity = set; // read by the later kernels of the batch only
+    state->commit = 0;
+  }
+  ResetSet(thread,
+           static_cast<size_t>(gridDim.x) * blockDim.x,
+           state->batch[1 - set],
+           counters + static_cast<size_t>(1 - set) * 2 * static_cast<size_t>(nCells),
+           nCells,
+           false);
   if (thread >= static_cast<size_t>(cp.count))
   {
     return;
   }
   const int32_t q = static_cast<int32_t>(thread);
-  if (state->halted)
-  {
-    flags[q] = 0;
-    return;
-  }
-  int32_t idx[D];
-  int32_t p = 0, rest = q;
+  int32_t       idx[D];
+  int32_t       p = 0, rest = q;
   for (unsigned int k = 0; k < D; ++k)
   {
     idx[k] = cp.origin[k] + 2 * (rest % cp.sub[k]);
@@ -356,7 +416,8 @@ ProposeKernel(GridParams      g,
       nc += known ? 0u : 1u;
     }
   }
-  uint8_t flag = 0;
+  bool     flag = false;
+  Proposal prop{};
   if (nc > 0)
   {
     const double w = static_cast<double>(density[p]);
@@ -379,101 +440,107 @@ ProposeKernel(GridParams      g,
       }
       if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, idx, own))
       {
-        flag = 1;
-        slots[q] = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
+        flag = true;
+        prop = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
       }
     }
   }
-  flags[q] = flag;
+  // one atomic per converged group of lanes for the slots
+  const unsigned int active = __activemask();
+  const unsigned int want = __ballot_sync(active, flag);
+  if (flag)
+  {
+    BatchCounts &      batch = state->batch[set];
+    const unsigned int lane = threadIdx.x % 32;
+    const int          leader = __ffs(want) - 1;
+    int32_t            base = 0;
+    if (static_cast<int>(lane) == leader)
+    {
+      base = atomicAdd(&batch.numberOfProposals, __popc(want));
+    }
+    base = __shfl_sync(want, base, leader);
+    proposals[base + __popc(want & ((1u << lane) - 1u))] = prop;
+    CountProposal(prop, batch, counters + static_cast<size_t>(set) * 2 * static_cast<size_t>(nCells), touched);
+  }
 }
 
-/** Gathers the selected proposals (when selected is not null) and counts, per cell, the proposals touching it;
- * lists the touched cells. */
+/** Halving path: counts, per cell, the proposals of the batch placed by the host, and lists the touched cells. */
 __global__ void
-CountKernel(SweepState *     state,
-            const uint32_t * selected,
-            const Proposal * slots,
-            Proposal *       proposals,
-            int32_t *        count,
-            int32_t *        touched)
+CountKernel(SweepState * state, const Proposal * proposals, int32_t * counters, int32_t * touched, int32_t nCells)
 {
   WaitForPrevious();
   if (state->halted)
   {
     return;
   }
-  const int32_t n = state->numberOfProposals;
+  BatchCounts & batch = state->batch[state->parity];
+  int32_t *     count = CurrentSet(state, counters, nCells);
+  const int32_t n = batch.numberOfProposals;
   for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
   {
-    Proposal prop;
-    if (selected)
-    {
-      prop = slots[selected[i]];
-      proposals[i] = prop;
-    }
-    else
-    {
-      prop = proposals[i];
-    }
-    for (int side = 0; side < 2; ++side)
-    {
-      const int32_t c = side == 0 ? prop.from : prop.to;
-      if (atomicAdd(&count[c], 1) == 0)
-      {
-        touched[atomicAdd(&state->numberOfTouched, 1)] = c;
-      }
-    }
+    CountProposal(proposals[i], batch, count, touched);
   }
 }
 
 /** Places every touched cell's segment of entries (where does not matter: each is sorted later). */
 __global__ void
-AllocateKernel(SweepState * state, const int32_t * count, const int32_t * touched, int32_t * segment)
+AllocateKernel(SweepState * state, int32_t * counters, const int32_t * touched, int32_t * segment, int32_t nCells)
 {
   WaitForPrevious();
   if (state->halted)
   {
     return;
   }
-  const int32_t n = state->numberOfTouched;
+  BatchCounts &   batch = state->batch[state->parity];
+  const int32_t * count = CurrentSet(state, counters, nCells);
+  const int32_t   n = batch.numberOfTouched;
   for (int32_t j = blockIdx.x * blockDim.x + threadIdx.x; j < n; j += gridDim.x * blockDim.x)
   {
     const int32_t c = touched[j];
-    segment[c] = atomicAdd(&state->cursor, count[c]);
+    segment[c] = atomicAdd(&batch.cursor, count[c]);
   }
 }
 
-/** Entry 2 i + side of proposal i (side 0: its former cell, 1: its new cell) into the cell's segment. */
+/** Entry 2 i + side of proposal i (side 0: its former cell, 1: its new cell) into the cell's segment, with its sort
+ * key: the proposal's pixel (byPixel: the sweep's batches, appended in no particular order) or the entry itself (the
+ * host's halved batches, in the order of the CPU's sorted proposals). */
 __global__ void
 ScatterKernel(SweepState *     state,
               const Proposal * proposals,
               const int32_t *  segment,
-              int32_t *        fill,
-              int32_t *        entries)
+              int32_t *        counters,
+              int32_t *        entries,
+              uint32_t *       keys,
+              int32_t          nCells,
+              int32_t          byPixel)
 {
   WaitForPrevious();
   if (state->halted)
   {
     return;
   }
-  const int32_t n = state->numberOfProposals;
+  const int32_t n = state->batch[state->parity].numberOfProposals;
+  int32_t *     fill = CurrentSet(state, counters, nCells) + nCells;
   for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
   {
     const Proposal prop = proposals[i];
     for (int side = 0; side < 2; ++side)
     {
       const int32_t c = side == 0 ? prop.from : prop.to;
-      entries[segment[c] + atomicAdd(&fill[c], 1)] = 2 * i + side;
+      const int32_t at = segment[c] + atomicAdd(&fill[c], 1);
+      entries[at] = 2 * i + side;
+      keys[at] = byPixel ? prop.pixel : static_cast<uint32_t>(2 * i + side);
     }
   }
 }
 
 /** Per touched cell, one warp: the deltas of DiscreteCVT::JointEnergyChange summed in proposal order, and the
  * cell's term dQ - |dS|^2 / (m + dm) of the joint change.
- * The cell's entries (unique: a proposal touches a cell once) are placed by rank into `sorted`, which orders them by
- * proposal index. The lanes then compute the terms w, w (x - r)_k and w |x - r|^2 of 32 entries at a time, and
- * every lane adds them up in entry order from shuffles: the same products added in the same order as the CPU, so
- * the sums are bit-identical, while the loads of an entry's proposal and density overlap across the lanes. */
+ * The cell's entries (a proposal touches a cell once, so their keys differ) are placed by the rank of their key into
+ * `sorted`: the order of the CPU's proposals. The lanes then compute the terms w, w (x - r)_k and w |x - r|^2 of 32
+ * entries at a time, and every lane adds them up in entry order from shuffles: the same products added in the same
+ * order as the CPU, so the sums are bit-identical, while the loads of an entry's proposal and density overlap across
+ * the lanes. */
 template<unsigned int D>
 __global__ void
 CellKernel(GridParams       g,
@@ -482,38 +549,42 @@ CellKernel(GridParams       g,
            const float *    density,
            const double *   mass,
            const double *   centroid,
-           const int32_t *  count,
+           int32_t *        counters,
            const int32_t *  touched,
            const int32_t *  segment,
            const int32_t *  entries,
+           const uint32_t * keys,
            int32_t *        sorted,
            double *         deltaMass,
            double *         deltaMoment,
-           double *         term)
+           double *         term,
+           int32_t          nCells)
 {
   WaitForPrevious();
   if (state->halted)
   {
     return;
   }
-  const int32_t      n = state->numberOfTouched;
+  const int32_t *    count = CurrentSet(state, counters, nCells);
+  const int32_t      n = state->batch[state->parity].numberOfTouched;
   const unsigned int lane = threadIdx.x % 32;
   const int32_t      warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
   for (int32_t j = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); j < n; j += warps)
   {
-    const int32_t   c = touched[j];
-    const int32_t * e = entries + segment[c];
-    int32_t *       out = sorted + segment[c];
-    const int32_t   len = count[c];
+    const int32_t    c = touched[j];
+    const int32_t *  e = entries + segment[c];
+    const uint32_t * key = keys + segment[c];
+    int32_t *        out = sorted + segment[c];
+    const int32_t    len = count[c];
     for (int32_t a = static_cast<int32_t>(lane); a < len; a += 32)
     {
-      const int32_t v = e[a];
-      int32_t       rank = 0;
+      const uint32_t v = key[a];
+      int32_t        rank = 0;
       for (int32_t b = 0; b < len; ++b)
       {
-        rank += e[b] < v ? 1 : 0;
+        rank += key[b] < v ? 1 : 0;
       }
-      out[rank] = v;
+      out[rank] = e[a];
     }
     __syncwarp();
     double r[D], dS[D];
@@ -575,20 +646,11 @@ CellKernel(GridParams       g,
   }
 }
 
-/** One block: dE = sum of the touched cells' terms (fixed order), the commit decision, energy and swap count. */
-__global__ void
-DecideKernel(SweepState *    state,
-             const int32_t * count,
-             const double *  term,
-             int32_t         nCells,
-             int32_t         colour,
-             int32_t         haltOnReject)
+/** The joint change dE of the batch: the touched cells' terms summed by one block in a fixed order (every block that
+ * calls it gets the same value). */
+__device__ inline double
+BatchEnergyChange(const int32_t * count, const double * term, int32_t nCells)
 {
-  WaitForPrevious();
-  if (state->halted)
-  {
-    return;
-  }
   double sum = 0.0;
   for (int32_t c = threadIdx.x; c < nCells; c += blockDim.x)
   {
@@ -596,30 +658,91 @@ DecideKernel(SweepState *    state,
   }
   using Reduce = cub::BlockReduce<double, Threads>;
   __shared__ typename Reduce::TempStorage storage;
+  __shared__ double                       total;
   const double                            dE = Reduce(storage).Sum(sum);
   if (threadIdx.x == 0)
   {
-    const int32_t n = state->numberOfProposals;
-    state->dE = dE;
-    state->commit = 0;
-    if (n > 0)
+    total = dE;
+  }
+  __syncthreads();
+  return total;
+}
+
+/** The decision on the batch (thread 0 of one block): energy and swap count on commit; on a rejection with
+ * haltOnReject, the sweep halts and the host halves the batch. */
+__device__ inline void
+RecordDecision(SweepState * state, double dE, int32_t n, int32_t colour, bool haltOnReject)
+{
+  state->dE = dE;
+  state->commit = 0;
+  if (n > 0)
+  {
+    if (dE < 0.0)
     {
-      if (dE < 0.0)
-      {
-        state->commit = 1;
-        state->energy += dE;
-        state->swaps += static_cast<unsigned long long>(n);
-      }
-      else if (haltOnReject)
-      {
-        state->halted = 1;
-        state->rejectedColour = colour;
-      }
+      state->commit = 1;
+      state->energy += dE;
+      state->swaps += static_cast<unsigned long long>(n);
+    }
+    else if (haltOnReject)
+    {
+      state->halted = 1;
+      state->rejectedColour = colour;
     }
   }
 }
 
-/** Commits the batch: new labels, and per touched cell m += dm, r += dS / m (DiscreteCVT::CommitProposals). */
+/** Commits the batch from grid-stride thread `thread`: new labels, and per touched cell m += dm, r += dS / m
+ * (DiscreteCVT::CommitProposals). */
+template<unsigned int D>
+__device__ inline void
+CommitBatch(size_t           thread,
+            size_t           threads,
+            int32_t          n,
+            int32_t          nt,
+            const Proposal * proposals,
+            const int32_t *  touched,
+            const double *   deltaMass,
+            const double *   deltaMoment,
+            int32_t *        labels,
+            double *         mass,
+            double *         centroid)
+{
+  for (size_t i = thread; i < static_cast<size_t>(max(n, nt)); i += threads)
+  {
+    if (i < static_cast<size_t>(n))
+    {
+      labels[proposals[i].pixel] = proposals[i].to;
+    }
+    if (i < static_cast<size_t>(nt))
+    {
+      const int32_t c = touched[i];
+      const double  m = mass[c] + deltaMass[c];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        centroid[c * D + k] += deltaMoment[c * D + k] / m;
+      }
+      mass[c] = m;
+    }
+  }
+}
+
+/** Halving path, one block: dE of the batch and the decision (the host reads it). */
+__global__ void
+DecideKernel(SweepState * state, int32_t * counters, const double * term, int32_t nCells, int32_t colour)
+{
+  WaitForPrevious();
+  if (state->halted)
+  {
+    return;
+  }
+  const double dE = BatchEnergyChange(CurrentSet(state, counters, nCells), term, nCells);
+  if (threadIdx.x == 0)
+  {
+    RecordDecision(state, dE, state->batch[state->parity].numberOfProposals, colour, false);
+  }
+}
+
+/** Halving path: commits the batch when the host's decision says so. */
 template<unsigned int D>
 __global__ void
 CommitKernel(SweepState *     state,
@@ -636,24 +759,64 @@ CommitKernel(SweepState *     state,
   {
     return;
   }
-  const int32_t n = state->numberOfProposals;
-  const int32_t nt = state->numberOfTouched;
-  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < max(n, nt); i += gridDim.x * blockDim.x)
+  const BatchCounts & batch = state->batch[state->parity];
+  CommitBatch<D>(blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x,
+                 static_cast<size_t>(gridDim.x) * blockDim.x,
+                 batch.numberOfProposals,
+                 batch.numberOfTouched,
+                 proposals,
+                 touched,
+                 deltaMass,
+                 deltaMoment,
+                 labels,
+                 mass,
+                 centroid);
+}
+
+/** Sweep path: every block computes the same dE (BatchEnergyChange) and commits its share of the batch when dE < 0;
+ * block 0 records the decision (a rejection halts the sweep) and hands the counter set over to the next batch. */
+template<unsigned int D>
+__global__ void
+DecideCommitKernel(SweepState *     state,
+                   int32_t *        counters,
+                   const double *   term,
+                   int32_t          nCells,
+                   int32_t          colour,
+                   const Proposal * proposals,
+                   const int32_t *  touched,
+                   const double *   deltaMass,
+                   const double *   deltaMoment,
+                   int32_t *        labels,
+                   double *         mass,
+                   double *         centroid)
+{
+  WaitForPrevious();
+  if (state->halted) // set by an earlier batch of the sweep (block 0 of this kernel sets it only on a rejection)
   {
-    if (i < n)
-    {
-      labels[proposals[i].pixel] = proposals[i].to;
-    }
-    if (i < nt)
-    {
-      const int32_t c = touched[i];
-      const double  m = mass[c] + deltaMass[c];
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        centroid[c * D + k] += deltaMoment[c * D + k] / m;
-      }
-      mass[c] = m;
-    }
+    return;
+  }
+  const int32_t       set = state->parity;
+  const BatchCounts & batch = state->batch[set];
+  const int32_t       n = batch.numberOfProposals, nt = batch.numberOfTouched;
+  const double        dE = BatchEnergyChange(counters + static_cast<size_t>(set) * 2 * nCells, term, nCells);
+  if (blockIdx.x == 0 && threadIdx.x == 0)
+  {
+    RecordDecision(state, dE, n, colour, true);
+    state->nextParity = 1 - set;
+  }
+  if (n > 0 && dE < 0.0)
+  {
+    CommitBatch<D>(blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x,
+                   static_cast<size_t>(gridDim.x) * blockDim.x,
+                   n,
+                   nt,
+                   proposals,
+                   touched,
+                   deltaMass,
+                   deltaMoment,
+                   labels,
+                   mass,
+                   centroid);
   }
 }
 
@@ -854,9 +1017,8 @@ struct CVTSwapOptimizer::Impl
   size_t                         nCells{ 0 };
   DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
   DeviceBuffer<int32_t>          counters, segment, touched, entries, sortedEntries, cellStart, cellEnd;
-  DeviceBuffer<uint8_t>          flags;
-  DeviceBuffer<Proposal>         slots, proposals;
-  DeviceBuffer<uint32_t>         selected;
+  DeviceBuffer<Proposal>         proposals;
+  DeviceBuffer<uint32_t>         entryKeys;
   DeviceBuffer<SweepState>       state;
   DeviceBuffer<StatisticsReport> report;
   DeviceBuffer<uint8_t>          temp;
@@ -957,7 +1119,7 @@ struct CVTSwapOptimizer::Impl
       deltaMass.Resize(nCells);
       deltaMoment.Resize(nCells * D);
       term.Resize(nCells);
-      counters.Resize(2 * nCells);
+      counters.Resize(4 * nCells); // two counter sets of (count, fill) per cell
       segment.Resize(nCells);
       touched.Resize(nCells);
       cellStart.Resize(nCells);
@@ -1033,7 +1195,7 @@ struct CVTSwapOptimizer::Impl
     return e;
   }
 
-  /** Propose + select for one colour; the count lands in state->numberOfProposals. */
+  /** Propose for one colour: the proposals, their count and the per-cell counts of the batch. */
   template<unsigned int D>
   void
   EnqueuePropose(const ColourParams & cp)
@@ -1050,48 +1212,29 @@ struct CVTSwapOptimizer::Impl
                 centroid.Data(),
                 tolerance,
                 state.Data(),
-                flags.Data(),
-                slots.Data(),
+                proposals.Data(),
                 counters.Data(),
+                touched.Data(),
                 static_cast<int32_t>(nCells));
     CheckLaunch("ProposeKernel");
-    size_t bytes = temp.Size();
-    Check(cub::DeviceSelect::Flagged(temp.Data(),
-                                     bytes,
-                                     thrust::counting_iterator<uint32_t>(0),
-                                     flags.Data(),
-                                     selected.Data(),
-                                     &state.Data()->numberOfProposals,
-                                     cp.count,
-                                     stream),
-          "cub::DeviceSelect::Flagged");
   }
 
-  /** Counts the proposals per cell (gathering them from the slots when fromSlots) and lists the touched cells. */
+  /** The cells' entries of the counted batch and their sums (Allocate, Scatter, Cell). byPixel: the batch is in no
+   * particular order (the sweep's), so the entries are ordered by pixel; otherwise by proposal index (halving). */
+  template<unsigned int D>
   void
-  EnqueueCount(bool fromSlots)
+  EnqueueCellSums(bool byPixel)
   {
-    LaunchAfter(CountKernel,
+    const auto cells = static_cast<int32_t>(nCells);
+    LaunchAfter(AllocateKernel,
                 strideBlocks,
                 Threads,
                 stream,
                 state.Data(),
-                fromSlots ? selected.Data() : nullptr,
-                slots.Data(),
-                proposals.Data(),
                 counters.Data(),
-                touched.Data());
-    CheckLaunch("CountKernel");
-  }
-
-  /** Joint change of the batch in state, and the decision. */
-  template<unsigned int D>
-  void
-  EnqueueJointChange(bool fromSlots, int32_t colour, bool haltOnReject)
-  {
-    EnqueueCount(fromSlots);
-    LaunchAfter(
-      AllocateKernel, strideBlocks, Threads, stream, state.Data(), counters.Data(), touched.Data(), segment.Data());
+                touched.Data(),
+                segment.Data(),
+                cells);
     CheckLaunch("AllocateKernel");
     LaunchAfter(ScatterKernel,
                 strideBlocks,
@@ -1100,8 +1243,11 @@ struct CVTSwapOptimizer::Impl
                 state.Data(),
                 proposals.Data(),
                 segment.Data(),
-                counters.Data() + nCells,
-                entries.Data());
+                counters.Data(),
+                entries.Data(),
+                entryKeys.Data(),
+                cells,
+                byPixel ? 1 : 0);
     CheckLaunch("ScatterKernel");
     LaunchAfter(CellKernel<D>,
                 strideBlocks,
@@ -1117,11 +1263,31 @@ struct CVTSwapOptimizer::Impl
                 touched.Data(),
                 segment.Data(),
                 entries.Data(),
+                entryKeys.Data(),
                 sortedEntries.Data(),
                 deltaMass.Data(),
                 deltaMoment.Data(),
-                term.Data());
+                term.Data(),
+                cells);
     CheckLaunch("CellKernel");
+  }
+
+  /** Halving path: joint change of the batch the host placed in `proposals`, and the decision (not committed). */
+  template<unsigned int D>
+  void
+  EnqueueJointChange(int32_t colour)
+  {
+    LaunchAfter(CountKernel,
+                strideBlocks,
+                Threads,
+                stream,
+                state.Data(),
+                proposals.Data(),
+                counters.Data(),
+                touched.Data(),
+                static_cast<int32_t>(nCells));
+    CheckLaunch("CountKernel");
+    EnqueueCellSums<D>(false);
     LaunchAfter(DecideKernel,
                 1,
                 Threads,
@@ -1130,8 +1296,7 @@ struct CVTSwapOptimizer::Impl
                 counters.Data(),
                 term.Data(),
                 static_cast<int32_t>(nCells),
-                colour,
-                haltOnReject ? 1 : 0);
+                colour);
     CheckLaunch("DecideKernel");
   }
 
@@ -1154,6 +1319,32 @@ struct CVTSwapOptimizer::Impl
     CheckLaunch("CommitKernel");
   }
 
+  /** Sweep path: one colour's batch, proposed, summed, decided and committed (or halting the sweep). */
+  template<unsigned int D>
+  void
+  EnqueueBatch(const ColourParams & cp)
+  {
+    EnqueuePropose<D>(cp);
+    EnqueueCellSums<D>(true);
+    LaunchAfter(DecideCommitKernel<D>,
+                strideBlocks,
+                Threads,
+                stream,
+                state.Data(),
+                counters.Data(),
+                term.Data(),
+                static_cast<int32_t>(nCells),
+                cp.colour,
+                proposals.Data(),
+                touched.Data(),
+                deltaMass.Data(),
+                deltaMoment.Data(),
+                labels.Data(),
+                mass.Data(),
+                centroid.Data());
+    CheckLaunch("DecideCommitKernel");
+  }
+
   /** The sub-sweeps of colours first..last of a sweep (from its start when first is 0), then the state's copy to
    * the pinned host copy. */
   template<unsigned int D>
@@ -1171,9 +1362,7 @@ struct CVTSwapOptimizer::Impl
       {
         continue;
       }
-      EnqueuePropose<D>(colours[c]);
-      EnqueueJointChange<D>(true, static_cast<int32_t>(c), true);
-      EnqueueCommit<D>();
+      EnqueueBatch<D>(colours[c]);
     }
     Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
           "download state");
@@ -1265,9 +1454,9 @@ struct CVTSwapOptimizer::Impl
   HalveBatch(const ColourParams & cp, CVTSwapResult & result)
   {
     WriteInt(&state.Data()->halted, 0);
-    EnqueuePropose<D>(cp); // the state is that of the rejected sub-sweep: same proposals
-    EnqueueCount(true);    // gathers them in pixel order
-    size_t count = static_cast<size_t>(ReadState().numberOfProposals);
+    // the rejected batch is still in place: its proposals (in no particular order) and its counter set
+    const int32_t set = ReadState().parity;
+    size_t        count = static_cast<size_t>(hostState->batch[set].numberOfProposals);
     if (count <= 1)
     {
       return;
@@ -1283,11 +1472,11 @@ struct CVTSwapOptimizer::Impl
     for (;;)
     {
       count /= 2;
-      WriteInt(&state.Data()->numberOfProposals, static_cast<int32_t>(count));
+      WriteInt(&state.Data()->batch[set].numberOfProposals, static_cast<int32_t>(count));
       ResetBatchKernel<<<strideBlocks, Threads, 0, stream>>>(
         state.Data(), counters.Data(), static_cast<int32_t>(nCells));
       CheckLaunch("ResetBatchKernel");
-      EnqueueJointChange<D>(false, cp.colour, false);
+      EnqueueJointChange<D>(cp.colour);
       if (ReadState().commit)
       {
         EnqueueCommit<D>();
@@ -1312,6 +1501,7 @@ struct CVTSwapOptimizer::Impl
     hostState->energy = energy;
     hostState->rejectedColour = -1;
     Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
+    counters.Zero(stream); // both counter sets start empty
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
       const double before = energy;
@@ -1431,26 +1621,13 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
       m.sortedKeys.Resize(n);
       m.sortedPixels.Resize(n);
       const size_t slotsNeeded = static_cast<size_t>(std::max(m.maxColourCount, 1));
-      m.flags.Resize(slotsNeeded);
-      m.slots.Resize(slotsNeeded);
       m.proposals.Resize(slotsNeeded);
-      m.selected.Resize(slotsNeeded);
       m.entries.Resize(2 * slotsNeeded);
+      m.entryKeys.Resize(2 * slotsNeeded);
       m.sortedEntries.Resize(2 * slotsNeeded);
       m.state.Resize(1);
       IotaKernel<<<m.strideBlocks, Threads, 0, m.stream>>>(m.iota.Data(), static_cast<int32_t>(n));
       CheckLaunch("IotaKernel");
-      size_t selectBytes = 0;
-      Check(cub::DeviceSelect::Flagged(nullptr,
-                                       selectBytes,
-                                       thrust::counting_iterator<uint32_t>(0),
-                                       m.flags.Data(),
-                                       m.selected.Data(),
-                                       &m.state.Data()->numberOfProposals,
-                                       static_cast<int32_t>(slotsNeeded),
-                                       m.stream),
-            "cub::DeviceSelect::Flagged");
-      m.ReserveTemp(selectBytes);
       Check(cudaStreamSynchronize(m.stream), "SetGrid (synchronise)");
       m.dimension = dimension;
     });
