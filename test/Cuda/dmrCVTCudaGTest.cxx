@@ -251,20 +251,27 @@ TEST(CVTCuda, HalvedBatchesGiveTheCpuLabels)
     itk::dmr::DiscreteCVT<2> cpu;
     cpu.SetDensity(grid, density.data(), nullptr);
     cpu.ContractionInitialize(numberOfCells, 1);
-    CVTSwapOptimizer gpu;
-    ASSERT_TRUE(Ok(gpu.SetGrid(2, grid.size.data(), grid.spacing.data())));
-    ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
-    ASSERT_TRUE(Ok(gpu.SetLabels(cpu.GetLabels().data(), numberOfCells, false)));
-    const auto    c = cpu.Optimize(0.0, 1000);
-    CVTSwapResult g;
-    ASSERT_TRUE(Ok(gpu.Optimize(0.0, 1000, g)));
-    EXPECT_EQ(g.rejectedBatches, c.rejectedBatches) << "trial " << trial;
-    EXPECT_EQ(g.swaps, c.swaps) << "trial " << trial;
-    EXPECT_EQ(g.sweeps, c.sweeps) << "trial " << trial;
-    EXPECT_LE(g.energyAfter, g.energyBefore);
-    ExpectSameState<2>(cpu, gpu, "trial " + std::to_string(trial));
-    ExpectConsistentLabels<2>(grid, density, gpu, numberOfCells);
-    rejected += g.rejectedBatches;
+    const std::vector<int32_t> initial = cpu.GetLabels();
+    const auto                 c = cpu.Optimize(0.0, 1000);
+    // both ways of running the sweeps: the device-side loop and one launch plus host check per sweep
+    for (const bool deviceLoop : { true, false })
+    {
+      const std::string when = "trial " + std::to_string(trial) + (deviceLoop ? ", device loop" : ", host loop");
+      CVTSwapOptimizer  gpu;
+      gpu.SetDeviceLoop(deviceLoop);
+      ASSERT_TRUE(Ok(gpu.SetGrid(2, grid.size.data(), grid.spacing.data())));
+      ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
+      ASSERT_TRUE(Ok(gpu.SetLabels(initial.data(), numberOfCells, false)));
+      CVTSwapResult g;
+      ASSERT_TRUE(Ok(gpu.Optimize(0.0, 1000, g)));
+      EXPECT_EQ(g.rejectedBatches, c.rejectedBatches) << when;
+      EXPECT_EQ(g.swaps, c.swaps) << when;
+      EXPECT_EQ(g.sweeps, c.sweeps) << when;
+      EXPECT_LE(g.energyAfter, g.energyBefore);
+      ExpectSameState<2>(cpu, gpu, when);
+      ExpectConsistentLabels<2>(grid, density, gpu, numberOfCells);
+      rejected += deviceLoop ? g.rejectedBatches : 0;
+    }
   }
   EXPECT_GT(rejected, 0u) << "no batch was halved: the test did not exercise the halving";
 }

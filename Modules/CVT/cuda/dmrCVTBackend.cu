@@ -27,8 +27,10 @@
  *     (DiscreteCVT::JointEnergyChange's order).
  *  4. DecideCommit: every block reduces the cells' terms to the joint change dE in one fixed order (so all blocks
  *     agree) and, if dE < 0, commits its share: labels, masses, centroids; block 0 records energy and swap count.
- * A whole sweep (all colours, then the copy of SweepState to pinned host memory) is captured once into a CUDA graph
- * and replayed; the host synchronises once per sweep for the stopping rule.
+ * The sweeps of an Optimize call are one CUDA graph, captured once and replayed: a conditional while node around a
+ * sweep (all colours) and EndSweepKernel, which applies the stopping rule on the device, then the copy of SweepState
+ * to pinned host memory. Where conditional nodes are unavailable (or SetDeviceLoop(false)), one sweep is the graph
+ * and the host synchronises once per sweep for the stopping rule.
  * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
  * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
  * resumes with the next colour (Count, Allocate, Scatter, Cell, Decide, Commit on its sorted halves, entries keyed by
@@ -156,6 +158,14 @@ struct SweepState
   int32_t            nextParity; // the counter set of the next batch
   int32_t            unused;
   BatchCounts        batch[2];
+  // the stopping rule of Optimize, applied on the device by EndSweepKernel
+  double             sweepStartEnergy;
+  double             epsilon;
+  unsigned long long totalSwaps;
+  int32_t            sweeps;
+  int32_t            maximumSweeps;
+  int32_t            stop;
+  int32_t            unused2;
 };
 
 /** Outcome of the statistics recomputation. */
@@ -828,6 +838,30 @@ BeginSweepKernel(SweepState * state)
   state->swaps = 0;
   state->halted = 0;
   state->rejectedColour = -1;
+  state->sweepStartEnergy = state->energy;
+}
+
+/** End of a sweep that was not halted: the sweep and its swaps are counted and Optimize's stopping rule decides
+ * (no swap, an energy decrease of at most epsilon x energy, or the sweep limit). In the loop graph it also sets the
+ * loop's condition (0 after a halted sweep too: the host halves the batch and finishes the sweep). */
+__global__ void
+EndSweepKernel(SweepState * state, cudaGraphConditionalHandle loop, int32_t inGraph)
+{
+  WaitForPrevious();
+  int32_t stop = 1;
+  if (!state->halted)
+  {
+    state->sweeps += 1;
+    state->totalSwaps += state->swaps;
+    const double before = state->sweepStartEnergy;
+    stop =
+      state->swaps == 0 || before - state->energy <= state->epsilon * before || state->sweeps >= state->maximumSweeps;
+    state->stop = stop;
+  }
+  if (inGraph)
+  {
+    cudaGraphSetConditional(loop, stop ? 0u : 1u);
+  }
 }
 
 __global__ void
@@ -1028,6 +1062,11 @@ struct CVTSwapOptimizer::Impl
   cudaGraphExec_t sweepGraph{ nullptr };
   const void *    graphKey[5]{};
   bool            graphUnavailable{ false };
+  // all the sweeps of an Optimize call as one graph: a conditional while node around a sweep and EndSweepKernel,
+  // so the host does not wait for every sweep (falls back to sweepGraph where conditional nodes are unavailable)
+  cudaGraphExec_t loopGraph{ nullptr };
+  bool            loopUnavailable{ false };
+  bool            deviceLoop{ true };
 
   Impl() = default;
   Impl(const Impl &) = delete;
@@ -1053,6 +1092,11 @@ struct CVTSwapOptimizer::Impl
     {
       cudaGraphExecDestroy(sweepGraph);
       sweepGraph = nullptr;
+    }
+    if (loopGraph)
+    {
+      cudaGraphExecDestroy(loopGraph);
+      loopGraph = nullptr;
     }
   }
 
@@ -1349,7 +1393,7 @@ struct CVTSwapOptimizer::Impl
    * the pinned host copy. */
   template<unsigned int D>
   void
-  EnqueueSweep(unsigned int first)
+  EnqueueSweep(unsigned int first, bool download = true)
   {
     if (first == 0)
     {
@@ -1364,8 +1408,11 @@ struct CVTSwapOptimizer::Impl
       }
       EnqueueBatch<D>(colours[c]);
     }
-    Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
-          "download state");
+    if (download)
+    {
+      Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+            "download state");
+    }
   }
 
   SweepState
@@ -1490,6 +1537,86 @@ struct CVTSwapOptimizer::Impl
     }
   }
 
+  /** The loop graph for the current buffers, captured on first use; false where it cannot be had. */
+  template<unsigned int D>
+  bool
+  PrepareLoopGraph()
+  {
+    const void * key[5] = {
+      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
+    };
+    if ((sweepGraph || loopGraph) && !std::equal(key, key + 5, graphKey))
+    {
+      DropGraph();
+    }
+    std::copy(key, key + 5, graphKey);
+    if (!loopGraph && !loopUnavailable)
+    {
+      CaptureLoop<D>();
+    }
+    return loopGraph != nullptr;
+  }
+
+  /** Captures loopGraph: while (condition) { EnqueueSweep(0); EndSweepKernel } then the state's download. */
+  template<unsigned int D>
+  void
+  CaptureLoop()
+  {
+    Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
+    cudaGraph_t                graph = nullptr;
+    bool                       ok = cudaGraphCreate(&graph, 0) == cudaSuccess;
+    cudaGraphConditionalHandle handle{};
+    cudaGraphNode_t            loopNode = nullptr;
+    cudaGraphNodeParams        params{};
+    ok = ok && cudaGraphConditionalHandleCreate(&handle, graph, 1, cudaGraphCondAssignDefault) == cudaSuccess;
+    if (ok)
+    {
+      params.type = cudaGraphNodeTypeConditional;
+      params.conditional.handle = handle;
+      params.conditional.type = cudaGraphCondTypeWhile;
+      params.conditional.size = 1;
+      ok = cudaGraphAddNode(&loopNode, graph, nullptr, nullptr, 0, &params) == cudaSuccess;
+    }
+    cudaGraph_t body = ok ? params.conditional.phGraph_out[0] : nullptr;
+    ok = ok &&
+         cudaStreamBeginCaptureToGraph(stream, body, nullptr, nullptr, 0, cudaStreamCaptureModeRelaxed) == cudaSuccess;
+    if (ok)
+    {
+      try
+      {
+        EnqueueSweep<D>(0, false);
+        LaunchAfter(EndSweepKernel, 1, 1, stream, state.Data(), handle, 1);
+      }
+      catch (const CudaError &)
+      {
+        ok = false;
+      }
+      cudaGraph_t captured = nullptr;
+      ok = cudaStreamEndCapture(stream, &captured) == cudaSuccess && ok && captured == body;
+    }
+    ok = ok && cudaStreamBeginCaptureToGraph(stream, graph, &loopNode, nullptr, 1, cudaStreamCaptureModeRelaxed) ==
+                 cudaSuccess;
+    if (ok)
+    {
+      const bool copied =
+        cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream) == cudaSuccess;
+      cudaGraph_t captured = nullptr;
+      ok = cudaStreamEndCapture(stream, &captured) == cudaSuccess && copied && captured == graph;
+    }
+    ok = ok && cudaGraphInstantiate(&loopGraph, graph, 0) == cudaSuccess;
+    if (!ok)
+    {
+      loopGraph = nullptr;
+      loopUnavailable = true;
+      cudaGetLastError();
+    }
+
+    if (graph)
+    {
+      cudaGraphDestroy(graph);
+    }
+  }
+
   template<unsigned int D>
   void
   Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result)
@@ -1500,8 +1627,39 @@ struct CVTSwapOptimizer::Impl
     *hostState = SweepState{};
     hostState->energy = energy;
     hostState->rejectedColour = -1;
+    hostState->epsilon = epsilon;
+    hostState->maximumSweeps =
+      static_cast<int32_t>(std::min<size_t>(maximumNumberOfSweeps, std::numeric_limits<int32_t>::max()));
     Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
     counters.Zero(stream); // both counter sets start empty
+    if (deviceLoop && maximumNumberOfSweeps > 0 && PrepareLoopGraph<D>())
+    {
+      // the sweeps run on the device until the stopping rule holds; the host steps in only to halve a batch
+      for (;;)
+      {
+        Check(cudaGraphLaunch(loopGraph, stream), "cudaGraphLaunch");
+        Check(cudaStreamSynchronize(stream), "sweeps (synchronise)");
+        while (hostState->halted)
+        {
+          const SweepState s = *hostState;
+          ++result.rejectedBatches;
+          HalveBatch<D>(colours[s.rejectedColour], result);
+          EnqueueSweep<D>(static_cast<unsigned int>(s.rejectedColour) + 1, false); // the rest of the sweep
+          LaunchAfter(EndSweepKernel, 1, 1, stream, state.Data(), cudaGraphConditionalHandle{}, 0);
+          CheckLaunch("EndSweepKernel");
+          ReadState();
+        }
+        if (hostState->stop)
+        {
+          break;
+        }
+      }
+      energy = hostState->energy;
+      result.sweeps = static_cast<size_t>(hostState->sweeps);
+      result.swaps = static_cast<size_t>(hostState->totalSwaps);
+      result.energyAfter = energy;
+      return;
+    }
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
       const double before = energy;
@@ -1766,6 +1924,12 @@ CVTSwapOptimizer::GetCells(std::vector<double> & masses, std::vector<double> & c
       m.mass.Download(masses.data(), m.nCells, m.stream);
       m.centroid.Download(centroids.data(), m.nCells * m.dimension, m.stream);
     });
+}
+
+void
+CVTSwapOptimizer::SetDeviceLoop(bool enabled)
+{
+  m_Impl->deviceLoop = enabled;
 }
 
 double

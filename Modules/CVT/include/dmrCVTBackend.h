@@ -56,7 +56,7 @@ struct CVTSwapResult
  *
  * Typical use: SetGrid, SetDensity, SetLabels (e.g. from the CPU contraction), Optimize; for the next registration
  * iteration SetDensity with the new density and KeepLabels (warm start), Optimize. The work runs on the object's own
- * CUDA stream (a sweep is one replayed CUDA graph, one small read-back per sweep): device memory passed in must
+ * CUDA stream (the sweeps of an Optimize call are one replayed CUDA graph looping on the device, see SetDeviceLoop): device memory passed in must
  * hold its final values when it is passed (the producer's stream synchronised), and every call returns with its
  * work finished, so DeviceLabels() can be read by any stream afterwards. Not thread-safe. */
 class DynamicMeshRegistration_EXPORT CVTSwapOptimizer
@@ -87,6 +87,11 @@ public:
    * maximumNumberOfSweeps sweeps (dmr::DiscreteCVT<D>::Optimize). */
   Status
   Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result);
+  /** Whether Optimize runs its sweeps as one loop on the device (a CUDA graph with a conditional while node around a
+   * sweep and the stopping rule; the host steps in only to halve a rejected batch), where the driver supports
+   * conditional nodes; otherwise one graph launch and one host check per sweep. Same results. Default on. */
+  void
+  SetDeviceLoop(bool enabled);
 
   /** Copies the labels to host memory (one value per pixel). */
   Status

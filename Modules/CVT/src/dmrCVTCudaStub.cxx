@@ -89,6 +89,10 @@ CVTSwapOptimizer::GetCells(std::vector<double> &, std::vector<double> &) const
   return Unavailable();
 }
 
+void
+CVTSwapOptimizer::SetDeviceLoop(bool)
+{}
+
 double
 CVTSwapOptimizer::Energy() const
 {
