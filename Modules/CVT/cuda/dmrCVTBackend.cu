@@ -1431,22 +1431,29 @@ struct CVTSwapOptimizer::Impl
     Check(cudaStreamSynchronize(stream), "upload (synchronise)"); // value lives on this stack frame
   }
 
+  /** Drops both graphs when the buffers they captured have changed, and records the current ones. */
+  void
+  ForgetStaleGraphs()
+  {
+    const void * key[5] = {
+      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
+    };
+    if ((sweepGraph || loopGraph) && !std::equal(key, key + 5, graphKey))
+    {
+      DropGraph();
+    }
+    std::copy(key, key + 5, graphKey);
+  }
+
   /** A whole sweep from its start: the graph when it can be had (captured once, replayed), else direct launches. */
   template<unsigned int D>
   void
   LaunchSweep()
   {
-    const void * key[5] = {
-      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
-    };
-    if (sweepGraph && !std::equal(key, key + 5, graphKey))
-    {
-      DropGraph();
-    }
+    ForgetStaleGraphs();
     if (!sweepGraph && !graphUnavailable)
     {
       CaptureSweep<D>();
-      std::copy(key, key + 5, graphKey);
     }
     if (sweepGraph)
     {
@@ -1542,14 +1549,7 @@ struct CVTSwapOptimizer::Impl
   bool
   PrepareLoopGraph()
   {
-    const void * key[5] = {
-      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
-    };
-    if ((sweepGraph || loopGraph) && !std::equal(key, key + 5, graphKey))
-    {
-      DropGraph();
-    }
-    std::copy(key, key + 5, graphKey);
+    ForgetStaleGraphs();
     if (!loopGraph && !loopUnavailable)
     {
       CaptureLoop<D>();
