@@ -29,8 +29,8 @@
  *     agree) and, if dE < 0, commits its share: labels, masses, centroids; block 0 records energy and swap count.
  * The sweeps of an Optimize call are one CUDA graph, captured once and replayed: a conditional while node around a
  * sweep (all colours) and EndSweepKernel, which applies the stopping rule on the device, then the copy of SweepState
- * to pinned host memory. Where conditional nodes are unavailable (or SetDeviceLoop(false)), one sweep is the graph
- * and the host synchronises once per sweep for the stopping rule.
+ * to pinned host memory. Where conditional nodes are unavailable (or SetDeviceLoop(false)), one sweep with its
+ * EndSweepKernel is the graph and the host synchronises once per sweep to read the rule's verdict.
  * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
  * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
  * resumes with the next colour (Count, Allocate, Scatter, Cell, Decide, Commit on its sorted halves, entries keyed by
@@ -1393,7 +1393,7 @@ struct CVTSwapOptimizer::Impl
    * the pinned host copy. */
   template<unsigned int D>
   void
-  EnqueueSweep(unsigned int first, bool download = true)
+  EnqueueSweep(unsigned int first)
   {
     if (first == 0)
     {
@@ -1408,7 +1408,16 @@ struct CVTSwapOptimizer::Impl
       }
       EnqueueBatch<D>(colours[c]);
     }
-    if (download)
+  }
+
+  /** End of a sweep: EndSweepKernel (setting the loop graph's condition when `loop` is given), then, outside the
+   * loop graph, the state's copy to the pinned host copy. */
+  void
+  EnqueueEndSweep(const cudaGraphConditionalHandle * loop)
+  {
+    LaunchAfter(EndSweepKernel, 1, 1, stream, state.Data(), loop ? *loop : cudaGraphConditionalHandle{}, loop ? 1 : 0);
+    CheckLaunch("EndSweepKernel");
+    if (!loop)
     {
       Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
             "download state");
@@ -1445,7 +1454,48 @@ struct CVTSwapOptimizer::Impl
     std::copy(key, key + 5, graphKey);
   }
 
-  /** A whole sweep from its start: the graph when it can be had (captured once, replayed), else direct launches. */
+  /** Captures the launches of `enqueue` into `graph` (after `dependency` when not null); false on any failure. */
+  template<typename TEnqueue>
+  bool
+  CaptureInto(cudaGraph_t graph, const cudaGraphNode_t * dependency, TEnqueue && enqueue)
+  {
+    if (cudaStreamBeginCaptureToGraph(
+          stream, graph, dependency, nullptr, dependency ? 1 : 0, cudaStreamCaptureModeRelaxed) != cudaSuccess)
+    {
+      return false;
+    }
+    bool ok = true;
+    try
+    {
+      enqueue();
+    }
+    catch (const CudaError &)
+    {
+      ok = false;
+    }
+    cudaGraph_t captured = nullptr;
+    return cudaStreamEndCapture(stream, &captured) == cudaSuccess && ok && captured == graph;
+  }
+
+  /** Instantiates `graph` into `exec` and destroys it; on failure `unavailable` is set (and the error cleared). */
+  static void
+  Instantiate(cudaGraph_t graph, bool ok, cudaGraphExec_t & exec, bool & unavailable)
+  {
+    ok = ok && cudaGraphInstantiate(&exec, graph, 0) == cudaSuccess;
+    if (!ok)
+    {
+      exec = nullptr;
+      unavailable = true;
+      cudaGetLastError();
+    }
+    if (graph)
+    {
+      cudaGraphDestroy(graph);
+    }
+  }
+
+  /** A whole sweep from its start and its end: the graph when it can be had (captured once, replayed), else direct
+   * launches. */
   template<unsigned int D>
   void
   LaunchSweep()
@@ -1453,7 +1503,19 @@ struct CVTSwapOptimizer::Impl
     ForgetStaleGraphs();
     if (!sweepGraph && !graphUnavailable)
     {
-      CaptureSweep<D>();
+      Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
+      cudaGraph_t graph = nullptr;
+      const bool  created = cudaGraphCreate(&graph, 0) == cudaSuccess;
+      Instantiate(graph,
+                  created && CaptureInto(graph,
+                                         nullptr,
+                                         [&]
+                                         {
+                                           EnqueueSweep<D>(0);
+                                           EnqueueEndSweep(nullptr);
+                                         }),
+                  sweepGraph,
+                  graphUnavailable);
     }
     if (sweepGraph)
     {
@@ -1462,42 +1524,7 @@ struct CVTSwapOptimizer::Impl
     else
     {
       EnqueueSweep<D>(0);
-    }
-  }
-
-  /** Captures EnqueueSweep(0) into sweepGraph; on failure the sweeps use direct launches from then on. */
-  template<unsigned int D>
-  void
-  CaptureSweep()
-  {
-    Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
-    Check(cudaStreamBeginCapture(stream, cudaStreamCaptureModeRelaxed), "cudaStreamBeginCapture");
-    cudaGraph_t graph = nullptr;
-    try
-    {
-      EnqueueSweep<D>(0);
-    }
-    catch (const CudaError &)
-    {
-      cudaStreamEndCapture(stream, &graph);
-      if (graph)
-      {
-        cudaGraphDestroy(graph);
-      }
-      cudaGetLastError();
-      graphUnavailable = true;
-      return;
-    }
-    if (cudaStreamEndCapture(stream, &graph) != cudaSuccess || !graph ||
-        cudaGraphInstantiate(&sweepGraph, graph, 0) != cudaSuccess)
-    {
-      sweepGraph = nullptr;
-      graphUnavailable = true;
-      cudaGetLastError();
-    }
-    if (graph)
-    {
-      cudaGraphDestroy(graph);
+      EnqueueEndSweep(nullptr);
     }
   }
 
@@ -1544,24 +1571,17 @@ struct CVTSwapOptimizer::Impl
     }
   }
 
-  /** The loop graph for the current buffers, captured on first use; false where it cannot be had. */
+  /** The loop graph for the current buffers, captured on first use: while (condition) { sweep; EndSweepKernel },
+   * then the state's download. False where it cannot be had. */
   template<unsigned int D>
   bool
   PrepareLoopGraph()
   {
     ForgetStaleGraphs();
-    if (!loopGraph && !loopUnavailable)
+    if (loopGraph || loopUnavailable)
     {
-      CaptureLoop<D>();
+      return loopGraph != nullptr;
     }
-    return loopGraph != nullptr;
-  }
-
-  /** Captures loopGraph: while (condition) { EnqueueSweep(0); EndSweepKernel } then the state's download. */
-  template<unsigned int D>
-  void
-  CaptureLoop()
-  {
     Check(cudaStreamSynchronize(stream), "cudaStreamSynchronize");
     cudaGraph_t                graph = nullptr;
     bool                       ok = cudaGraphCreate(&graph, 0) == cudaSuccess;
@@ -1577,44 +1597,23 @@ struct CVTSwapOptimizer::Impl
       params.conditional.size = 1;
       ok = cudaGraphAddNode(&loopNode, graph, nullptr, nullptr, 0, &params) == cudaSuccess;
     }
-    cudaGraph_t body = ok ? params.conditional.phGraph_out[0] : nullptr;
-    ok = ok &&
-         cudaStreamBeginCaptureToGraph(stream, body, nullptr, nullptr, 0, cudaStreamCaptureModeRelaxed) == cudaSuccess;
-    if (ok)
-    {
-      try
-      {
-        EnqueueSweep<D>(0, false);
-        LaunchAfter(EndSweepKernel, 1, 1, stream, state.Data(), handle, 1);
-      }
-      catch (const CudaError &)
-      {
-        ok = false;
-      }
-      cudaGraph_t captured = nullptr;
-      ok = cudaStreamEndCapture(stream, &captured) == cudaSuccess && ok && captured == body;
-    }
-    ok = ok && cudaStreamBeginCaptureToGraph(stream, graph, &loopNode, nullptr, 1, cudaStreamCaptureModeRelaxed) ==
-                 cudaSuccess;
-    if (ok)
-    {
-      const bool copied =
-        cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream) == cudaSuccess;
-      cudaGraph_t captured = nullptr;
-      ok = cudaStreamEndCapture(stream, &captured) == cudaSuccess && copied && captured == graph;
-    }
-    ok = ok && cudaGraphInstantiate(&loopGraph, graph, 0) == cudaSuccess;
-    if (!ok)
-    {
-      loopGraph = nullptr;
-      loopUnavailable = true;
-      cudaGetLastError();
-    }
-
-    if (graph)
-    {
-      cudaGraphDestroy(graph);
-    }
+    ok = ok && CaptureInto(params.conditional.phGraph_out[0],
+                           nullptr,
+                           [&]
+                           {
+                             EnqueueSweep<D>(0);
+                             EnqueueEndSweep(&handle);
+                           });
+    ok = ok && CaptureInto(
+                 graph,
+                 &loopNode,
+                 [&]
+                 {
+                   Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+                         "download state");
+                 });
+    Instantiate(graph, ok, loopGraph, loopUnavailable);
+    return loopGraph != nullptr;
   }
 
   template<unsigned int D>
@@ -1624,6 +1623,11 @@ struct CVTSwapOptimizer::Impl
     RequireCells();
     result = CVTSwapResult{};
     result.energyBefore = energy;
+    result.energyAfter = energy;
+    if (maximumNumberOfSweeps == 0)
+    {
+      return;
+    }
     *hostState = SweepState{};
     hostState->energy = energy;
     hostState->rejectedColour = -1;
@@ -1632,59 +1636,37 @@ struct CVTSwapOptimizer::Impl
       static_cast<int32_t>(std::min<size_t>(maximumNumberOfSweeps, std::numeric_limits<int32_t>::max()));
     Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
     counters.Zero(stream); // both counter sets start empty
-    if (deviceLoop && maximumNumberOfSweeps > 0 && PrepareLoopGraph<D>())
+    const bool loop = deviceLoop && PrepareLoopGraph<D>();
+    for (;;)
     {
-      // the sweeps run on the device until the stopping rule holds; the host steps in only to halve a batch
-      for (;;)
+      // the sweeps until the stopping rule holds (EndSweepKernel) or one is halted: on the device in the loop graph,
+      // otherwise one sweep per launch
+      if (loop)
       {
         Check(cudaGraphLaunch(loopGraph, stream), "cudaGraphLaunch");
-        Check(cudaStreamSynchronize(stream), "sweeps (synchronise)");
-        while (hostState->halted)
-        {
-          const SweepState s = *hostState;
-          ++result.rejectedBatches;
-          HalveBatch<D>(colours[s.rejectedColour], result);
-          EnqueueSweep<D>(static_cast<unsigned int>(s.rejectedColour) + 1, false); // the rest of the sweep
-          LaunchAfter(EndSweepKernel, 1, 1, stream, state.Data(), cudaGraphConditionalHandle{}, 0);
-          CheckLaunch("EndSweepKernel");
-          ReadState();
-        }
-        if (hostState->stop)
-        {
-          break;
-        }
       }
-      energy = hostState->energy;
-      result.sweeps = static_cast<size_t>(hostState->sweeps);
-      result.swaps = static_cast<size_t>(hostState->totalSwaps);
-      result.energyAfter = energy;
-      return;
-    }
-    for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
-    {
-      const double before = energy;
-      LaunchSweep<D>();
-      for (;;)
+      else
       {
-        Check(cudaStreamSynchronize(stream), "sweep (synchronise)");
+        LaunchSweep<D>();
+      }
+      Check(cudaStreamSynchronize(stream), "sweeps (synchronise)");
+      while (hostState->halted)
+      {
         const SweepState s = *hostState;
-        if (!s.halted)
-        {
-          break;
-        }
         ++result.rejectedBatches;
         HalveBatch<D>(colours[s.rejectedColour], result);
         EnqueueSweep<D>(static_cast<unsigned int>(s.rejectedColour) + 1); // the rest of the sweep
+        EnqueueEndSweep(nullptr);
+        Check(cudaStreamSynchronize(stream), "sweep (synchronise)");
       }
-      const SweepState & s = *hostState;
-      energy = s.energy;
-      ++result.sweeps;
-      result.swaps += static_cast<size_t>(s.swaps);
-      if (s.swaps == 0 || before - energy <= epsilon * before)
+      if (hostState->stop)
       {
         break;
       }
     }
+    energy = hostState->energy;
+    result.sweeps = static_cast<size_t>(hostState->sweeps);
+    result.swaps = static_cast<size_t>(hostState->totalSwaps);
     result.energyAfter = energy;
   }
 };
