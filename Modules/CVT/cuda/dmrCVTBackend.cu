@@ -21,6 +21,11 @@
  *  1. Propose: one thread per pixel of the colour, against the frozen labels (the rule of DiscreteCVT::BestSwap);
  *     appends its proposal (one atomic per warp) and counts it for its two cells, listing the touched cells. Two
  *     counter sets alternate between batches: Propose also clears the previous batch's set.
+ *     A pixel is evaluated only when one of its cells (its own, its face neighbours') changed since the colour's
+ *     previous batch: every proposal stamps its two cells with the batch number (SweepState::phase), which covers
+ *     every commit and every proposal a halving dropped. A pixel with no stamped cell has the inputs of its previous
+ *     evaluation (labels of its cells' pixels, masses, centroids, density), which proposed nothing, so skipping it
+ *     gives the full scan's proposals (a read of a stamp written in the same batch only adds a needless evaluation).
  *  2. Allocate/Scatter: for each touched cell, its segment of (proposal, side) entries, keyed by pixel.
  *  3. Cell: one warp per touched cell orders its entries by key (by rank; pixel order is the CPU's proposal order)
  *     and sums the deltas of mass, first moment about the old centroid and second moment in that order
@@ -153,10 +158,11 @@ struct SweepState
   unsigned long long swaps;  // committed in this sweep
   int32_t            halted; // a batch of this sweep was rejected: later kernels of the sweep do nothing
   int32_t            rejectedColour;
-  int32_t            commit;     // the current batch is committed
-  int32_t            parity;     // the counter set of the current batch
-  int32_t            nextParity; // the counter set of the next batch
-  int32_t            unused;
+  int32_t            commit;       // the current batch is committed
+  int32_t            parity;       // the counter set of the current batch
+  int32_t            nextParity;   // the counter set of the next batch
+  int32_t            phase;        // number of the current batch in this Optimize call (from 1)
+  int32_t            lastPhase[8]; // per colour: the number of its previous batch (0: none yet)
   BatchCounts        batch[2];
   // the stopping rule of Optimize, applied on the device by EndSweepKernel
   double             sweepStartEnergy;
@@ -165,7 +171,6 @@ struct SweepState
   int32_t            sweeps;
   int32_t            maximumSweeps;
   int32_t            stop;
-  int32_t            unused2;
 };
 
 /** Outcome of the statistics recomputation. */
@@ -373,6 +378,7 @@ ProposeKernel(GridParams      g,
               Proposal *      proposals,
               int32_t *       counters,
               int32_t *       touched,
+              int32_t *       cellStamp,
               int32_t         nCells)
 {
   WaitForPrevious();
@@ -382,6 +388,8 @@ ProposeKernel(GridParams      g,
   }
   const size_t  thread = blockIdx.x * static_cast<size_t>(blockDim.x) + threadIdx.x;
   const int32_t set = state->nextParity; // not written by this kernel
+  const int32_t phase = state->phase;    // nor these two (DecideCommitKernel advances them)
+  const int32_t since = state->lastPhase[cp.colour];
   if (thread == 0)
   {
     state->parity = set; // read by the later kernels of the batch only
@@ -426,9 +434,20 @@ ProposeKernel(GridParams      g,
       nc += known ? 0u : 1u;
     }
   }
+  // Skip a pixel none of whose cells (its own, the candidates) changed or took part in a proposal since the colour's
+  // previous batch: its inputs are those of its previous evaluation, which found no swap.
+  bool changed = false;
+  if (nc > 0)
+  {
+    changed = cellStamp[own] >= since;
+    for (unsigned int c = 0; c < nc; ++c)
+    {
+      changed |= cellStamp[candidates[c]] >= since;
+    }
+  }
   bool     flag = false;
   Proposal prop{};
-  if (nc > 0)
+  if (changed)
   {
     const double w = static_cast<double>(density[p]);
     const double mi = mass[own];
@@ -452,6 +471,9 @@ ProposeKernel(GridParams      g,
       {
         flag = true;
         prop = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
+        // both cells change if the swap is committed; if it is not (halving), this pixel must propose again
+        cellStamp[own] = phase;
+        cellStamp[bestLabel] = phase;
       }
     }
   }
@@ -813,6 +835,8 @@ DecideCommitKernel(SweepState *     state,
   {
     RecordDecision(state, dE, n, colour, true);
     state->nextParity = 1 - set;
+    state->lastPhase[colour] = state->phase;
+    state->phase += 1;
   }
   if (n > 0 && dE < 0.0)
   {
@@ -1051,6 +1075,7 @@ struct CVTSwapOptimizer::Impl
   size_t                         nCells{ 0 };
   DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
   DeviceBuffer<int32_t>          counters, segment, touched, entries, sortedEntries, cellStart, cellEnd;
+  DeviceBuffer<int32_t>          cellStamp; // per cell: the last batch (SweepState::phase) it took part in
   DeviceBuffer<Proposal>         proposals;
   DeviceBuffer<uint32_t>         entryKeys;
   DeviceBuffer<SweepState>       state;
@@ -1168,6 +1193,7 @@ struct CVTSwapOptimizer::Impl
       touched.Resize(nCells);
       cellStart.Resize(nCells);
       cellEnd.Resize(nCells);
+      cellStamp.Resize(nCells);
     }
     report.Resize(1);
     Check(cudaMemsetAsync(report.Data(), 0xFF, sizeof(StatisticsReport), stream), "cudaMemset");
@@ -1259,6 +1285,7 @@ struct CVTSwapOptimizer::Impl
                 proposals.Data(),
                 counters.Data(),
                 touched.Data(),
+                cellStamp.Data(),
                 static_cast<int32_t>(nCells));
     CheckLaunch("ProposeKernel");
   }
@@ -1631,11 +1658,13 @@ struct CVTSwapOptimizer::Impl
     *hostState = SweepState{};
     hostState->energy = energy;
     hostState->rejectedColour = -1;
+    hostState->phase = 1; // every cell stamped 0 >= every colour's lastPhase 0: the first sweep evaluates all
     hostState->epsilon = epsilon;
     hostState->maximumSweeps =
       static_cast<int32_t>(std::min<size_t>(maximumNumberOfSweeps, std::numeric_limits<int32_t>::max()));
     Check(cudaMemcpyAsync(state.Data(), hostState, sizeof(SweepState), cudaMemcpyHostToDevice, stream), "upload state");
     counters.Zero(stream); // both counter sets start empty
+    cellStamp.Zero(stream);
     const bool loop = deviceLoop && PrepareLoopGraph<D>();
     for (;;)
     {
