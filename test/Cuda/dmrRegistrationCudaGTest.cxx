@@ -250,6 +250,24 @@ ElasticSolveAgrees(itk::dmr::cuda::RegistrationContext & context, const itk::dmr
   EXPECT_NEAR(static_cast<double>(iterations), static_cast<double>(solver->GetLastIterations() + 1),
               std::max(3.0, 0.1 * static_cast<double>(solver->GetLastIterations())));
 
+  // the one-launch (cooperative) CG loop and the separate launches take the same products: the same iterate, bit for
+  // bit, after the same number of products, converged or stopped early
+  for (const size_t limit : { size_t{ 7 }, 4 * ndof + 1000 })
+  {
+    std::vector<double> uSeparate(ndof, 3.0), uFused(ndof, 5.0);
+    size_t              separateIterations = 0, fusedIterations = 0;
+    bool                separateConverged = false, fusedConverged = true;
+    context.SetCooperativeSolve(false);
+    ASSERT_TRUE(
+      context.SolveElasticity(f.data(), uSeparate.data(), 1e-12, limit, separateIterations, separateConverged).Ok());
+    context.SetCooperativeSolve(true);
+    ASSERT_TRUE(context.SolveElasticity(f.data(), uFused.data(), 1e-12, limit, fusedIterations, fusedConverged).Ok());
+    EXPECT_EQ(fusedIterations, separateIterations) << "limit " << limit;
+    EXPECT_EQ(fusedConverged, separateConverged) << "limit " << limit;
+    EXPECT_EQ(fusedConverged, limit > 7) << "limit " << limit;
+    EXPECT_EQ(uFused, uSeparate) << "limit " << limit;
+  }
+
   // u^T K u / 2 over all nodes, fixed ones included (f is not zero there)
   double energy = 0.0;
   ASSERT_TRUE(context.ElasticEnergy(f.data(), energy).Ok());

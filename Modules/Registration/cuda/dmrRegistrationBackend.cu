@@ -23,6 +23,8 @@
 #include "dmrRegistrationBackend.h"
 #include "dmrCudaUtils.cuh"
 
+#include <cooperative_groups.h>
+
 #include <algorithm>
 #include <climits>
 #include <cmath>
@@ -860,16 +862,12 @@ SumPartials(const double * partials, int count, double * shared)
   return shared[0]; // the next BlockSum synchronises before it writes shared again
 }
 
-/** S_e = V_e sigma_e(G) with G = sum_b p_b (x) g_b (D x D, row-major). */
+/** S_e = V_e sigma_e(G) with G = sum_b p_b (x) g_b (D x D, row-major), for the elements of a grid-stride loop. */
 template <int D>
-__global__ void
-ElementStressKernel(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
-                    double mu, const int * done, double * stress)
+__device__ void
+ElementStresses(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
+                double mu, double * stress)
 {
-  if (done && *done)
-  {
-    return;
-  }
   for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
        e += static_cast<long long>(gridDim.x) * blockDim.x)
   {
@@ -903,22 +901,29 @@ ElementStressKernel(long long ne, const int * elements, const double * geometry,
   }
 }
 
-/** q = K p at every node (0 on fixed nodes when fixed is given), and per block the partial sum of p . q. One warp per
- * node: lane l takes the node's incidences l, l + 32, ... (element order) and the warp sums them by a fixed shuffle
- * tree, so the result is deterministic. */
 template <int D>
 __global__ void
-NodeApplyKernel(long long nn, const int * start, const int * incidence, const double * geometry,
-                const double * stress, const uint8_t * fixed, const double * p, const int * done, double * q,
-                double * partials)
+ElementStressKernel(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
+                    double mu, const int * done, double * stress)
 {
-  __shared__ double shared[CGThreads];
   if (done && *done)
   {
     return;
   }
+  ElementStresses<D>(ne, elements, geometry, p, lambda, mu, stress);
+}
+
+/** q = K p at the nodes of block `block` (CGThreads threads, 8 nodes; 0 on fixed nodes when fixed is given), and the
+ * block's partial sum of p . q. One warp per node: lane l takes the node's incidences l, l + 32, ... (element order)
+ * and the warp sums them by a fixed shuffle tree, so the result is deterministic. */
+template <int D>
+__device__ void
+NodeApplyBlock(long long block, long long nn, const int * start, const int * incidence, const double * geometry,
+               const double * stress, const uint8_t * fixed, const double * p, double * q, double * partials,
+               double * shared)
+{
   const int       lane = threadIdx.x & 31;
-  const long long a = (blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x) >> 5;
+  const long long a = (block * blockDim.x + threadIdx.x) >> 5;
   double          y[D] = {};
   if (a < nn && !(fixed && fixed[a]))
   {
@@ -955,15 +960,29 @@ NodeApplyKernel(long long nn, const int * start, const int * incidence, const do
   const double total = BlockSum(pq, shared);
   if (threadIdx.x == 0)
   {
-    partials[blockIdx.x] = total;
+    partials[block] = total;
   }
+}
+
+template <int D>
+__global__ void
+NodeApplyKernel(long long nn, const int * start, const int * incidence, const double * geometry,
+                const double * stress, const uint8_t * fixed, const double * p, const int * done, double * q,
+                double * partials)
+{
+  __shared__ double shared[CGThreads];
+  if (done && *done)
+  {
+    return;
+  }
+  NodeApplyBlock<D>(blockIdx.x, nn, start, incidence, geometry, stress, fixed, p, q, partials, shared);
 }
 
 /** r_i = ri and z_i = M^-1 ri (for i < ndof), then per block the partial sums of r.r and r.z; returns z_i. Every thread
  * of the block calls it. */
 __device__ double
-StoreResidual(long long i, long long ndof, double ri, const double * inverseDiagonal, double * r, double * z,
-              double * shared, double * rrPartials, double * rzPartials)
+StoreResidual(long long block, long long i, long long ndof, double ri, const double * inverseDiagonal, double * r,
+              double * z, double * shared, double * rrPartials, double * rzPartials)
 {
   double rr = 0.0, rz = 0.0, zi = 0.0;
   if (i < ndof)
@@ -978,15 +997,32 @@ StoreResidual(long long i, long long ndof, double ri, const double * inverseDiag
   const double rzBlock = BlockSum(rz, shared);
   if (threadIdx.x == 0)
   {
-    rrPartials[blockIdx.x] = rrBlock;
-    rzPartials[blockIdx.x] = rzBlock;
+    rrPartials[block] = rrBlock;
+    rzPartials[block] = rzBlock;
   }
   return zi;
 }
 
 // CG state: scalars[0..1] = r.z by iteration parity, scalars[2] = |r|^2 of the last step; state[0] = converged flag,
 // state[1] = products taken.
-/** x += alpha p, r -= alpha q, z = M^-1 r with alpha = (r.z) / (p.q); per block partial sums of r.r and r.z. */
+/** x += alpha p, r -= alpha q, z = M^-1 r with alpha = (r.z) / (p.q) for the degrees of freedom of block `block`
+ * (CGThreads each), and its partial sums of r.r and r.z. */
+__device__ void
+CGStepBlock(long long block, long long ndof, int parity, const double * pqPartials, int pqCount, const double * p,
+            const double * q, const double * inverseDiagonal, const double * scalars, double * x, double * r, double * z,
+            double * rrPartials, double * rzPartials, double * shared)
+{
+  const double    alpha = scalars[parity] / SumPartials(pqPartials, pqCount, shared);
+  const long long i = block * blockDim.x + threadIdx.x;
+  double          ri = 0.0;
+  if (i < ndof)
+  {
+    x[i] += alpha * p[i];
+    ri = r[i] - alpha * q[i];
+  }
+  StoreResidual(block, i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
+}
+
 __global__ void
 CGStepKernel(long long ndof, int parity, const double * pqPartials, int pqCount, const double * p, const double * q,
              const double * inverseDiagonal, const double * scalars, const int * state, double * x, double * r,
@@ -997,27 +1033,16 @@ CGStepKernel(long long ndof, int parity, const double * pqPartials, int pqCount,
   {
     return;
   }
-  const double    alpha = scalars[parity] / SumPartials(pqPartials, pqCount, shared);
-  const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  double          ri = 0.0;
-  if (i < ndof)
-  {
-    x[i] += alpha * p[i];
-    ri = r[i] - alpha * q[i];
-  }
-  StoreResidual(i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
+  CGStepBlock(blockIdx.x, ndof, parity, pqPartials, pqCount, p, q, inverseDiagonal, scalars, x, r, z, rrPartials,
+              rzPartials, shared);
 }
 
-/** Stops when |r|^2 < threshold; otherwise p = z + beta p with beta = (r.z)_new / (r.z)_old. */
-__global__ void
-CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
-                  double threshold, const double * z, double * p, double * scalars, int * state)
+/** Counts the product; true (and the converged flag set) when |r|^2 < threshold, otherwise p = z + beta p with
+ * beta = (r.z)_new / (r.z)_old for the degrees of freedom of a grid-stride loop. Every block computes the same sums. */
+__device__ bool
+CGDirection(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
+            double threshold, const double * z, double * p, double * scalars, int * state, double * shared)
 {
-  __shared__ double shared[CGThreads];
-  if (state[0])
-  {
-    return;
-  }
   const double rr = SumPartials(rrPartials, count, shared);
   const double rzNew = SumPartials(rzPartials, count, shared);
   if (blockIdx.x == 0 && threadIdx.x == 0)
@@ -1032,13 +1057,82 @@ CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const d
     {
       state[0] = 1;
     }
-    return;
+    return true;
   }
-  const double    beta = rzNew / scalars[parity];
-  const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  if (i < ndof)
+  const double beta = rzNew / scalars[parity];
+  for (long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; i < ndof;
+       i += static_cast<long long>(gridDim.x) * blockDim.x)
   {
     p[i] = z[i] + beta * p[i];
+  }
+  return false;
+}
+
+__global__ void
+CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
+                  double threshold, const double * z, double * p, double * scalars, int * state)
+{
+  __shared__ double shared[CGThreads];
+  if (state[0])
+  {
+    return;
+  }
+  CGDirection(ndof, parity, rrPartials, rzPartials, count, threshold, z, p, scalars, state, shared);
+}
+
+/** The arguments of CGSolveKernel. */
+struct CGSolveParams
+{
+  long long       nodes, elements, ndof;
+  const int *     vertices;
+  const int *     start;
+  const int *     incidence;
+  const double *  geometry;
+  double *        stress;
+  double          lambda, mu;
+  const uint8_t * fixed;
+  const double *  inverseDiagonal;
+  double *        x, *r, *z, *p, *q;
+  double *        pqPartials, *rrPartials, *rzPartials;
+  int             nodeBlocks, dofBlocks;
+  double *        scalars;
+  int *           state;
+  double          threshold;
+  long long       maximumProducts;
+};
+
+/** The whole CG loop in one cooperative launch: the phases of ElementStressKernel, NodeApplyKernel, CGStepKernel and
+ * CGDirectionKernel separated by grid barriers, each block taking the blocks of those launches in turn, so the sums
+ * and the iterates are those of the separate launches, without a launch or a host round trip per product. */
+template <int D>
+__global__ void
+CGSolveKernel(CGSolveParams a)
+{
+  __shared__ double shared[CGThreads];
+  cooperative_groups::grid_group grid = cooperative_groups::this_grid();
+  for (long long k = 0; k < a.maximumProducts; ++k)
+  {
+    const int parity = static_cast<int>(k & 1);
+    ElementStresses<D>(a.elements, a.vertices, a.geometry, a.p, a.lambda, a.mu, a.stress);
+    grid.sync();
+    for (long long b = blockIdx.x; b < a.nodeBlocks; b += gridDim.x)
+    {
+      NodeApplyBlock<D>(b, a.nodes, a.start, a.incidence, a.geometry, a.stress, a.fixed, a.p, a.q, a.pqPartials, shared);
+    }
+    grid.sync();
+    for (long long b = blockIdx.x; b < a.dofBlocks; b += gridDim.x)
+    {
+      CGStepBlock(b, a.ndof, parity, a.pqPartials, a.nodeBlocks, a.p, a.q, a.inverseDiagonal, a.scalars, a.x, a.r,
+                  a.z, a.rrPartials, a.rzPartials, shared);
+    }
+    grid.sync();
+    const bool converged = CGDirection(a.ndof, parity, a.rrPartials, a.rzPartials, a.dofBlocks, a.threshold, a.z, a.p,
+                                       a.scalars, a.state, shared);
+    grid.sync(); // scalars and p are read by the next product
+    if (converged)
+    {
+      return;
+    }
   }
 }
 
@@ -1055,7 +1149,7 @@ CGStartKernel(long long ndof, const double * f, const double * inverseDiagonal, 
     ri = fixed[i / dimension] ? 0.0 : f[i];
     x[i] = 0.0;
   }
-  const double zi = StoreResidual(i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
+  const double zi = StoreResidual(blockIdx.x, i, ndof, ri, inverseDiagonal, r, z, shared, rrPartials, rzPartials);
   if (i < ndof)
   {
     p[i] = zi;
@@ -1138,7 +1232,51 @@ struct RegistrationContext::Impl
   DeviceBuffer<uint8_t>            fixedNodes;
   DeviceBuffer<double>             geometry, stress, inverseDiagonal, cgX, cgR, cgZ, cgP, cgQ, cgPartials, cgScalars;
   DeviceBuffer<int>                cgState;
+  bool                             cooperativeSolve{ true };
+  int                              cgResidentBlocks[2]{ -1, -1 }; // CGSolveKernel<2, 3>: 0 where unavailable, -1 unknown
   size_t                           allocated{ 0 }; // the largest Bytes() seen
+
+  /** How many blocks of CGSolveKernel<D> the device keeps resident at once (0: no cooperative launch). */
+  template <int D>
+  int
+  ResidentCGBlocks()
+  {
+    int & n = cgResidentBlocks[D - 2];
+    if (n < 0)
+    {
+      int device = 0, cooperative = 0, sms = 0, perSM = 0;
+      const bool ok = cudaGetDevice(&device) == cudaSuccess &&
+                      cudaDeviceGetAttribute(&cooperative, cudaDevAttrCooperativeLaunch, device) == cudaSuccess &&
+                      cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device) == cudaSuccess &&
+                      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&perSM, CGSolveKernel<D>, CGThreads, 0) == cudaSuccess;
+      n = ok && cooperative ? sms * perSM : 0;
+      cudaGetLastError();
+    }
+    return n;
+  }
+
+  /** The CG loop as one cooperative launch; false (nothing launched) where the device cannot have it. */
+  template <int D>
+  bool
+  LaunchCGSolve(CGSolveParams params)
+  {
+    const long long needed =
+      std::max<long long>({ params.nodeBlocks, params.dofBlocks, (params.elements + CGThreads - 1) / CGThreads, 1LL });
+    const int blocks = static_cast<int>(std::min<long long>(needed, ResidentCGBlocks<D>()));
+    if (blocks <= 0)
+    {
+      return false;
+    }
+    void * args[] = { &params };
+    if (cudaLaunchCooperativeKernel(reinterpret_cast<const void *>(CGSolveKernel<D>), blocks, CGThreads, args, 0, nullptr) !=
+        cudaSuccess)
+    {
+      cudaGetLastError();
+      cgResidentBlocks[D - 2] = 0; // not again
+      return false;
+    }
+    return true;
+  }
 
   ElasticOperator
   Operator()
@@ -1525,11 +1663,23 @@ RegistrationContext::SolveElasticity(const double * f,
     const int    state[2] = { 0, 0 };
     Check(cudaMemcpy(m.cgScalars.Data(), scalars, sizeof(scalars), cudaMemcpyHostToDevice), "CG scalars");
     Check(cudaMemcpy(m.cgState.Data(), state, sizeof(state), cudaMemcpyHostToDevice), "CG state");
-    // batches of products without a host round trip; the kernels of a converged solve return at once
-    constexpr size_t     Batch = 16;
     const ElasticOperator op = m.Operator();
     int              hostState[2] = { 0, 0 };
-    for (size_t k = 0; k < maxIterations && !hostState[0];)
+    const CGSolveParams params{ op.nodes, op.elements, nd, op.vertices, op.start, op.incidence, op.geometry, op.stress,
+                                op.lambda, op.mu, m.fixedNodes.Data(), m.inverseDiagonal.Data(), m.cgX.Data(), m.cgR.Data(),
+                                m.cgZ.Data(), m.cgP.Data(), m.cgQ.Data(), pqPartials, rrPartials, rzPartials,
+                                static_cast<int>(nodeBlocks), static_cast<int>(dofBlocks), m.cgScalars.Data(),
+                                m.cgState.Data(), threshold, static_cast<long long>(maxIterations) };
+    const bool fused = m.cooperativeSolve && (D == 2 ? m.LaunchCGSolve<2>(params) : m.LaunchCGSolve<3>(params));
+    if (fused)
+    {
+      CheckLaunch("CGSolveKernel");
+      Check(cudaMemcpy(hostState, m.cgState.Data(), sizeof(hostState), cudaMemcpyDeviceToHost), "CG state");
+    }
+    // otherwise batches of separate launches without a host round trip; the kernels of a converged solve return at
+    // once
+    constexpr size_t Batch = 16;
+    for (size_t k = fused ? maxIterations : 0; k < maxIterations && !hostState[0];)
     {
       const size_t end = std::min(maxIterations, k + Batch);
       for (; k < end; ++k)
@@ -1728,6 +1878,12 @@ RegistrationContext::UploadField(const float * host)
     m_Impl->previous = nullptr;
     Check(cudaStreamSynchronize(nullptr), "UploadField");
   });
+}
+
+void
+RegistrationContext::SetCooperativeSolve(bool on)
+{
+  m_Impl->cooperativeSolve = on;
 }
 
 size_t

@@ -120,6 +120,11 @@ public:
   Status
   SolveElasticity(const double * f, double * u, double tolerance, size_t maxIterations, size_t & iterations,
                   bool & converged);
+  /** true (default): SolveElasticity runs its whole CG loop as one cooperative launch (grid barriers between the
+   * phases of a product) where the device allows it; false: one launch per phase, the host checking every 16 products.
+   * Both give the same iterates, bit for bit. */
+  void
+  SetCooperativeSolve(bool on);
   /** u^T K u / 2 over all nodes (fixed ones included), as LinearElasticFEMSolver::ElasticEnergy. */
   Status
   ElasticEnergy(const double * u, double & energy);

@@ -123,6 +123,10 @@ RegistrationContext::UploadField(const float *)
 {
   return Unavailable();
 }
+void
+RegistrationContext::SetCooperativeSolve(bool)
+{}
+
 size_t
 RegistrationContext::AllocatedBytes() const
 {
