@@ -16,6 +16,10 @@
  *
  *=========================================================================*/
 #include "itkDensityFieldFilter.h"
+#include "dmrGaussianShrink.h"
+#include "itkDiscreteGaussianImageFilter.h"
+#include "itkShrinkImageFilter.h"
+#include <array>
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
@@ -610,4 +614,90 @@ TEST(DensityFieldFilter, FixedMaskRestrictsForceDensityAndSimilarity)
   small->FillBuffer(1);
   filter->SetFixedMask(small);
   EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+}
+
+namespace
+{
+/** dmr::GaussianShrink against ShrinkImageFilter(DiscreteGaussianImageFilter) on a random image with a non-trivial
+ * geometry: the same geometry and the same floats, bit for bit, for the pyramid's factors (and an axis too thin for
+ * the factor, which then shrinks by less). */
+template <unsigned int D>
+void
+GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
+{
+  using Img = itk::Image<float, D>;
+  auto image = Img::New();
+  typename Img::RegionType region;
+  typename Img::IndexType  start;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    region.SetSize(k, size[k]);
+    start[k] = static_cast<typename Img::IndexValueType>(3 + k); // a buffer that does not start at 0
+  }
+  region.SetIndex(start);
+  image->SetRegions(region);
+  typename Img::SpacingType   spacing;
+  typename Img::PointType     origin;
+  typename Img::DirectionType direction;
+  direction.SetIdentity();
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    spacing[k] = 0.7 + 0.35 * k;
+    origin[k] = -12.5 + 4.0 * k;
+  }
+  const double angle = 0.3;
+  direction[0][0] = std::cos(angle);
+  direction[0][1] = -std::sin(angle);
+  direction[1][0] = std::sin(angle);
+  direction[1][1] = std::cos(angle);
+  image->SetSpacing(spacing);
+  image->SetOrigin(origin);
+  image->SetDirection(direction);
+  image->Allocate();
+  uint64_t h = 12345;
+  for (size_t p = 0; p < region.GetNumberOfPixels(); ++p)
+  {
+    h = h * 6364136223846793005ULL + 1442695040888963407ULL;
+    image->GetBufferPointer()[p] = static_cast<float>(static_cast<double>(h >> 40) * 1e-3 - 5000.0);
+  }
+  for (unsigned int level = 1; level <= 3; ++level)
+  {
+    const unsigned int factor = 1u << level;
+    unsigned int       factors[D];
+    auto               smooth = itk::DiscreteGaussianImageFilter<Img, Img>::New();
+    smooth->SetInput(image);
+    smooth->SetUseImageSpacing(false);
+    smooth->SetVariance(0.25 * factor * factor);
+    smooth->SetMaximumKernelWidth(64);
+    auto shrink = itk::ShrinkImageFilter<Img, Img>::New();
+    shrink->SetInput(smooth->GetOutput());
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      factors[k] = std::max<unsigned int>(1, std::min<unsigned int>(factor, size[k] / 2));
+      shrink->SetShrinkFactor(k, factors[k]);
+    }
+    shrink->Update();
+    const auto * expected = shrink->GetOutput();
+    const auto   actual = itk::dmr::GaussianShrink<D>(image.GetPointer(), 0.25 * factor * factor, 64, factors, nullptr);
+    ASSERT_EQ(actual->GetLargestPossibleRegion(), expected->GetLargestPossibleRegion()) << "level " << level;
+    EXPECT_EQ(actual->GetOrigin(), expected->GetOrigin());
+    EXPECT_EQ(actual->GetSpacing(), expected->GetSpacing());
+    EXPECT_EQ(actual->GetDirection(), expected->GetDirection());
+    size_t different = 0;
+    for (size_t p = 0; p < expected->GetLargestPossibleRegion().GetNumberOfPixels(); ++p)
+    {
+      different += actual->GetBufferPointer()[p] == expected->GetBufferPointer()[p] ? 0 : 1;
+    }
+    EXPECT_EQ(different, 0u) << D << "D level " << level << " of "
+                             << expected->GetLargestPossibleRegion().GetNumberOfPixels() << " pixels";
+  }
+}
+} // namespace
+
+TEST(DensityFieldFilter, GaussianShrinkGivesItksSmoothedAndShrunkPyramidLevels)
+{
+  GaussianShrinkMatchesItk<2>({ 37, 29 });
+  GaussianShrinkMatchesItk<2>({ 64, 5 }); // thin: shrinks by 2 at most along y
+  GaussianShrinkMatchesItk<3>({ 33, 26, 19 });
+  GaussianShrinkMatchesItk<3>({ 40, 35, 3 }); // one slice too few for factor 2 along z: no shrink there
 }

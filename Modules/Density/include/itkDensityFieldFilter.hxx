@@ -20,8 +20,7 @@
 
 #include "itkDensityFieldFilter.h"
 #include "itkCastImageFilter.h"
-#include "itkDiscreteGaussianImageFilter.h"
-#include "itkShrinkImageFilter.h"
+#include "dmrGaussianShrink.h"
 #include "itkImageRegionConstIterator.h"
 #include "itkImageAlgorithm.h"
 #include "itkProgressReporter.h"
@@ -274,45 +273,41 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
     }
   }
 
-  auto makeLevel = [this](const auto * image, unsigned int level) {
+  auto toFloat = [this](const auto * image) {
     using InImageType = std::remove_cv_t<std::remove_pointer_t<decltype(image)>>;
-    using CastType = CastImageFilter<InImageType, FloatImageType>;
-    auto cast = CastType::New();
+    auto cast = CastImageFilter<InImageType, FloatImageType>::New();
     cast->SetInput(image);
     cast->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-    if (level == 0)
-    {
-      cast->Update();
-      typename FloatImageType::Pointer out = cast->GetOutput();
-      out->DisconnectPipeline();
-      return out;
-    }
-    const unsigned int factor = 1u << level;
-    auto               smooth = DiscreteGaussianImageFilter<FloatImageType, FloatImageType>::New();
-    smooth->SetInput(cast->GetOutput());
-    smooth->SetUseImageSpacing(false);
-    smooth->SetVariance(0.25 * factor * factor); // sigma = 0.5 x shrink factor pixels, as ITK's pyramids
-    smooth->SetMaximumKernelWidth(64);
-    smooth->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-    auto shrink = ShrinkImageFilter<FloatImageType, FloatImageType>::New();
-    shrink->SetInput(smooth->GetOutput());
-    for (unsigned int k = 0; k < ImageDimension; ++k)
-    {
-      const auto n = image->GetLargestPossibleRegion().GetSize()[k];
-      shrink->SetShrinkFactor(k, std::max<unsigned int>(1, std::min<unsigned int>(factor, n / 2)));
-    }
-    shrink->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-    shrink->Update();
-    typename FloatImageType::Pointer out = shrink->GetOutput();
+    cast->Update();
+    typename FloatImageType::Pointer out = cast->GetOutput();
     out->DisconnectPipeline();
     return out;
   };
+  // level l: ShrinkImageFilter(DiscreteGaussianImageFilter(image)) with sigma = 0.5 x shrink factor pixels, as ITK's
+  // pyramids, computed only where the shrink keeps it (dmr::GaussianShrink: the same floats)
+  auto makeLevel = [this](const typename FloatImageType::Pointer & image, unsigned int level) {
+    if (level == 0)
+    {
+      return image;
+    }
+    const unsigned int factor = 1u << level;
+    unsigned int       factors[ImageDimension];
+    for (unsigned int k = 0; k < ImageDimension; ++k)
+    {
+      const auto n = image->GetLargestPossibleRegion().GetSize()[k];
+      factors[k] = std::max<unsigned int>(1, std::min<unsigned int>(factor, n / 2));
+    }
+    return dmr::GaussianShrink<ImageDimension>(
+      image.GetPointer(), 0.25 * factor * factor, 64, factors, this->GetMultiThreader());
+  };
+  const auto fixedFloat = toFloat(fixed);
+  const auto movingFloat = toFloat(moving);
 
   for (unsigned int l = 0; l < m_NumberOfLevels; ++l)
   {
     PyramidLevel & L = m_Levels[l];
-    auto    f = makeLevel(fixed, l);
-    auto    m = makeLevel(moving, l);
+    auto    f = makeLevel(fixedFloat, l);
+    auto    m = makeLevel(movingFloat, l);
     L.fixedGrid = GridType::FromImage(f);
     L.movingGrid = GridType::FromImage(m);
     dmr::CopyToFloat(f.GetPointer(), L.fixed);
