@@ -1250,7 +1250,10 @@ struct RegistrationContext::Impl
                       cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device) == cudaSuccess &&
                       cudaOccupancyMaxActiveBlocksPerMultiprocessor(&perSM, CGSolveKernel<D>, CGThreads, 0) == cudaSuccess;
       n = ok && cooperative ? sms * perSM : 0;
-      cudaGetLastError();
+      if (!ok)
+      {
+        cudaGetLastError(); // the failed query's error only: a launch error pending from before was already checked
+      }
     }
     return n;
   }
