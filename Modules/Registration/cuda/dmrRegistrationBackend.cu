@@ -1080,62 +1080,6 @@ CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const d
   CGDirection(ndof, parity, rrPartials, rzPartials, count, threshold, z, p, scalars, state, shared);
 }
 
-/** The arguments of CGSolveKernel. */
-struct CGSolveParams
-{
-  long long       nodes, elements, ndof;
-  const int *     vertices;
-  const int *     start;
-  const int *     incidence;
-  const double *  geometry;
-  double *        stress;
-  double          lambda, mu;
-  const uint8_t * fixed;
-  const double *  inverseDiagonal;
-  double *        x, *r, *z, *p, *q;
-  double *        pqPartials, *rrPartials, *rzPartials;
-  int             nodeBlocks, dofBlocks;
-  double *        scalars;
-  int *           state;
-  double          threshold;
-  long long       maximumProducts;
-};
-
-/** The whole CG loop in one cooperative launch: the phases of ElementStressKernel, NodeApplyKernel, CGStepKernel and
- * CGDirectionKernel separated by grid barriers, each block taking the blocks of those launches in turn, so the sums
- * and the iterates are those of the separate launches, without a launch or a host round trip per product. */
-template <int D>
-__global__ void
-CGSolveKernel(CGSolveParams a)
-{
-  __shared__ double shared[CGThreads];
-  cooperative_groups::grid_group grid = cooperative_groups::this_grid();
-  for (long long k = 0; k < a.maximumProducts; ++k)
-  {
-    const int parity = static_cast<int>(k & 1);
-    ElementStresses<D>(a.elements, a.vertices, a.geometry, a.p, a.lambda, a.mu, a.stress);
-    grid.sync();
-    for (long long b = blockIdx.x; b < a.nodeBlocks; b += gridDim.x)
-    {
-      NodeApplyBlock<D>(b, a.nodes, a.start, a.incidence, a.geometry, a.stress, a.fixed, a.p, a.q, a.pqPartials, shared);
-    }
-    grid.sync();
-    for (long long b = blockIdx.x; b < a.dofBlocks; b += gridDim.x)
-    {
-      CGStepBlock(b, a.ndof, parity, a.pqPartials, a.nodeBlocks, a.p, a.q, a.inverseDiagonal, a.scalars, a.x, a.r,
-                  a.z, a.rrPartials, a.rzPartials, shared);
-    }
-    grid.sync();
-    const bool converged = CGDirection(a.ndof, parity, a.rrPartials, a.rzPartials, a.dofBlocks, a.threshold, a.z, a.p,
-                                       a.scalars, a.state, shared);
-    grid.sync(); // scalars and p are read by the next product
-    if (converged)
-    {
-      return;
-    }
-  }
-}
-
 /** r = f (0 on fixed), x = 0, z = p = M^-1 r; partial sums of r.r and r.z. */
 __global__ void
 CGStartKernel(long long ndof, const double * f, const double * inverseDiagonal, const uint8_t * fixed, int dimension,
@@ -1202,6 +1146,58 @@ struct ElasticOperator
     CheckLaunch("NodeApplyKernel");
   }
 };
+
+/** The arguments of CGSolveKernel: the elastic operator and the CG vectors, partial sums and state. */
+struct CGSolveParams
+{
+  ElasticOperator op;
+  const uint8_t * fixed;
+  const double *  inverseDiagonal;
+  long long       ndof;
+  double *        x, *r, *z, *p, *q;
+  double *        pqPartials, *rrPartials, *rzPartials;
+  int             nodeBlocks, dofBlocks;
+  double *        scalars;
+  int *           state;
+  double          threshold;
+  long long       maximumProducts;
+};
+
+/** The whole CG loop in one cooperative launch: the phases of ElementStressKernel, NodeApplyKernel, CGStepKernel and
+ * CGDirectionKernel separated by grid barriers, each block taking the blocks of those launches in turn, so the sums
+ * and the iterates are those of the separate launches, without a launch or a host round trip per product. */
+template <int D>
+__global__ void
+CGSolveKernel(CGSolveParams a)
+{
+  __shared__ double shared[CGThreads];
+  cooperative_groups::grid_group grid = cooperative_groups::this_grid();
+  for (long long k = 0; k < a.maximumProducts; ++k)
+  {
+    const int parity = static_cast<int>(k & 1);
+    ElementStresses<D>(a.op.elements, a.op.vertices, a.op.geometry, a.p, a.op.lambda, a.op.mu, a.op.stress);
+    grid.sync();
+    for (long long b = blockIdx.x; b < a.nodeBlocks; b += gridDim.x)
+    {
+      NodeApplyBlock<D>(
+        b, a.op.nodes, a.op.start, a.op.incidence, a.op.geometry, a.op.stress, a.fixed, a.p, a.q, a.pqPartials, shared);
+    }
+    grid.sync();
+    for (long long b = blockIdx.x; b < a.dofBlocks; b += gridDim.x)
+    {
+      CGStepBlock(b, a.ndof, parity, a.pqPartials, a.nodeBlocks, a.p, a.q, a.inverseDiagonal, a.scalars, a.x, a.r,
+                  a.z, a.rrPartials, a.rzPartials, shared);
+    }
+    grid.sync();
+    const bool converged = CGDirection(a.ndof, parity, a.rrPartials, a.rzPartials, a.dofBlocks, a.threshold, a.z, a.p,
+                                       a.scalars, a.state, shared);
+    grid.sync(); // scalars and p are read by the next product
+    if (converged)
+    {
+      return;
+    }
+  }
+}
 } // namespace
 
 struct RegistrationContext::Impl
@@ -1264,7 +1260,7 @@ struct RegistrationContext::Impl
   LaunchCGSolve(CGSolveParams params)
   {
     const long long needed =
-      std::max<long long>({ params.nodeBlocks, params.dofBlocks, (params.elements + CGThreads - 1) / CGThreads, 1LL });
+      std::max<long long>({ params.nodeBlocks, params.dofBlocks, (params.op.elements + CGThreads - 1) / CGThreads, 1LL });
     const int blocks = static_cast<int>(std::min<long long>(needed, ResidentCGBlocks<D>()));
     if (blocks <= 0)
     {
@@ -1668,11 +1664,12 @@ RegistrationContext::SolveElasticity(const double * f,
     Check(cudaMemcpy(m.cgState.Data(), state, sizeof(state), cudaMemcpyHostToDevice), "CG state");
     const ElasticOperator op = m.Operator();
     int              hostState[2] = { 0, 0 };
-    const CGSolveParams params{ op.nodes, op.elements, nd, op.vertices, op.start, op.incidence, op.geometry, op.stress,
-                                op.lambda, op.mu, m.fixedNodes.Data(), m.inverseDiagonal.Data(), m.cgX.Data(), m.cgR.Data(),
-                                m.cgZ.Data(), m.cgP.Data(), m.cgQ.Data(), pqPartials, rrPartials, rzPartials,
-                                static_cast<int>(nodeBlocks), static_cast<int>(dofBlocks), m.cgScalars.Data(),
-                                m.cgState.Data(), threshold, static_cast<long long>(maxIterations) };
+    const CGSolveParams params{ op,           m.fixedNodes.Data(), m.inverseDiagonal.Data(), nd,
+                                m.cgX.Data(), m.cgR.Data(),        m.cgZ.Data(),             m.cgP.Data(),
+                                m.cgQ.Data(), pqPartials,          rrPartials,               rzPartials,
+                                static_cast<int>(nodeBlocks),      static_cast<int>(dofBlocks),
+                                m.cgScalars.Data(),                m.cgState.Data(),         threshold,
+                                static_cast<long long>(maxIterations) };
     const bool fused = m.cooperativeSolve && (D == 2 ? m.LaunchCGSolve<2>(params) : m.LaunchCGSolve<3>(params));
     if (fused)
     {
