@@ -90,9 +90,9 @@ GaussianShrink(const Image<float, D> * image,
   }
 
   // passes along axes D-1, ..., 0 (DiscreteGaussianImageFilter's order); shape before the pass along d: n[0..d],
-  // m[d+1..D-1]
-  std::vector<float> source(image->GetBufferPointer(), image->GetBufferPointer() + inRegion.GetNumberOfPixels());
-  std::vector<float> target;
+  // m[d+1..D-1]. The first pass reads the image, the last writes the output, the others alternate between two buffers.
+  const float *      source = image->GetBufferPointer();
+  std::vector<float> buffers[2];
   for (int d = static_cast<int>(D) - 1; d >= 0; --d)
   {
     GaussianOperator<double, D> op;
@@ -125,7 +125,12 @@ GaussianShrink(const Image<float, D> * image,
     }
     const int64_t                length = shape[d], outLength = m[d];
     const std::vector<int64_t> & at = kept[d];
-    target.assign(static_cast<size_t>(stride * outLength * above), 0.0f);
+    std::vector<float> &         buffer = buffers[d % 2];
+    if (d > 0)
+    {
+      buffer.resize(static_cast<size_t>(stride * outLength * above));
+    }
+    float * const target = d > 0 ? buffer.data() : out->GetBufferPointer();
     if (stride == 1)
     {
       // along the contiguous axis: one line at a time
@@ -136,8 +141,8 @@ GaussianShrink(const Image<float, D> * image,
         {
           for (size_t a = begin; a < end; ++a)
           {
-            const float * in = source.data() + static_cast<int64_t>(a) * length;
-            float *       o = target.data() + static_cast<int64_t>(a) * outLength;
+            const float * in = source + static_cast<int64_t>(a) * length;
+            float *       o = target + static_cast<int64_t>(a) * outLength;
             for (int64_t j = 0; j < outLength; ++j)
             {
               const int64_t centre = at[static_cast<size_t>(j)];
@@ -171,14 +176,14 @@ GaussianShrink(const Image<float, D> * image,
             for (int64_t k = 0; k <= 2 * r; ++k)
             {
               const int64_t i = std::min(std::max<int64_t>(centre + k - r, 0), length - 1);
-              const float * in = source.data() + (a * length + i) * stride;
+              const float * in = source + (a * length + i) * stride;
               const double  ck = c[static_cast<size_t>(k)];
               for (int64_t b = 0; b < stride; ++b)
               {
                 sum[static_cast<size_t>(b)] += ck * static_cast<double>(in[b]);
               }
             }
-            float * o = target.data() + (a * outLength + j) * stride;
+            float * o = target + (a * outLength + j) * stride;
             for (int64_t b = 0; b < stride; ++b)
             {
               o[b] = static_cast<float>(sum[static_cast<size_t>(b)]);
@@ -187,9 +192,8 @@ GaussianShrink(const Image<float, D> * image,
         },
         1);
     }
-    source.swap(target);
+    source = target;
   }
-  std::copy(source.begin(), source.end(), out->GetBufferPointer());
   return out;
 }
 } // namespace dmr
