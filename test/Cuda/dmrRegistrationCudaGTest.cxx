@@ -449,7 +449,112 @@ StagesAgree(unsigned int nodes, unsigned int n)
   }
   EXPECT_GT(largestDiff, 0.05 * largest);
 }
+
+/** The pyramid the device builds at Initialize from an incomplete one (DensityFieldFilter::GetPyramid(false), as the
+ * registration passes it: level 0's images and the plans) is the CPU's complete pyramid bit for bit: every level's
+ * fixed and moving image (dmr::GaussianShrink) and moving gradient (GradientInto). A moving image of another size and
+ * direction than the fixed image (R is a real rotation), anisotropic spacing, odd sizes, and `thin` pixels along the
+ * last axis (no shrink there, one-sided differences; a level of one pixel when thin is 1). */
+template<unsigned int D>
+void
+DevicePyramidEqualsCPU(unsigned int n, unsigned int thin)
+{
+  const double c[3] = { 0.45 * n, 0.5 * n, 0.45 * n }, r[3] = { 0.3 * n, 0.22 * n, 0.25 * n };
+  auto         fixed = Blob<D>(n, c, r);
+  auto         moving = Blob<D>(n + 3, c, r);
+  if (thin > 0)
+  {
+    for (auto * image : { &fixed, &moving })
+    {
+      auto size = (*image)->GetLargestPossibleRegion().GetSize();
+      size[D - 1] = thin;
+      auto cut = ImageOf<D>::New();
+      cut->CopyInformation(*image);
+      cut->SetRegions(size);
+      cut->Allocate();
+      itk::ImageRegionIteratorWithIndex<ImageOf<D>> it(cut, cut->GetLargestPossibleRegion());
+      for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+      {
+        it.Set((*image)->GetPixel(it.GetIndex()));
+      }
+      *image = cut;
+    }
+  }
+  auto         direction = moving->GetDirection();
+  const double a = -0.6; // moving rotated the other way round than the fixed image (Blob: +0.35)
+  direction(0, 0) = std::cos(a);
+  direction(0, 1) = -std::sin(a);
+  direction(1, 0) = std::sin(a);
+  direction(1, 1) = std::cos(a);
+  moving->SetDirection(direction);
+
+  using DensityFilter =
+    itk::DensityFieldFilter<ImageOf<D>, ImageOf<D>, itk::Image<itk::Vector<float, D>, D>, ImageOf<D>>;
+  auto density = DensityFilter::New();
+  density->SetFixedImage(fixed);
+  density->SetMovingImage(moving);
+  const auto                          grid = itk::dmr::Grid<D>::FromImage(fixed.GetPointer());
+  itk::dmr::cuda::RegistrationContext context;
+  {
+    const auto views =
+      itk::dmr::PyramidLevelViews<D>(density->GetPyramid(false), fixed->GetDirection(), grid.numberOfPixels);
+    ASSERT_EQ(views.size(), 3u);
+    for (size_t l = 0; l < views.size(); ++l)
+    {
+      ASSERT_EQ(views[l].movingGradient, nullptr);
+      ASSERT_EQ(views[l].fixed == nullptr, l > 0);
+      ASSERT_EQ(views[l].moving == nullptr, l > 0);
+    }
+    ASSERT_TRUE(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, nullptr).Ok());
+  }
+  const auto & pyramid = density->GetPyramid(true); // rebuilt, complete, on the CPU
+  EXPECT_GT(std::abs(pyramid[0].R[0][1]), 0.5) << "the moving and fixed grid frames should differ";
+  EXPECT_LT(pyramid[2].movingGrid.numberOfPixels, pyramid[0].movingGrid.numberOfPixels / (thin > 0 ? 2 : 8));
+  auto countDifferent = [](const std::vector<float> & cpu, const std::vector<float> & gpu)
+  {
+    size_t differ = 0;
+    for (size_t i = 0; i < cpu.size(); ++i)
+    {
+      differ += std::memcmp(&cpu[i], &gpu[i], sizeof(float)) != 0 ? 1 : 0;
+    }
+    return differ;
+  };
+  for (unsigned int l = 0; l < pyramid.size(); ++l)
+  {
+    const auto & L = pyramid[l];
+    ASSERT_EQ(L.fixed.size(), L.fixedGrid.numberOfPixels);
+    ASSERT_EQ(L.moving.size(), L.movingGrid.numberOfPixels);
+    ASSERT_EQ(L.movingGradient.size(), L.movingGrid.numberOfPixels * D);
+    std::vector<float> f(L.fixed.size()), m(L.moving.size()), g(L.movingGradient.size());
+    ASSERT_TRUE(context.DownloadLevel(l, f.data(), m.data(), g.data()).Ok());
+    EXPECT_EQ(countDifferent(L.fixed, f), 0u) << "level " << l << ": fixed floats that differ from the CPU's";
+    EXPECT_EQ(countDifferent(L.moving, m), 0u) << "level " << l << ": moving floats that differ from the CPU's";
+    EXPECT_EQ(countDifferent(L.movingGradient, g), 0u) << "level " << l << ": gradient floats that differ";
+    double largest = 0.0;
+    for (const float x : L.movingGradient)
+    {
+      largest = std::max(largest, std::abs(static_cast<double>(x)));
+    }
+    EXPECT_GT(largest, 0.0) << "level " << l;
+  }
+  float none = 0.0f;
+  EXPECT_FALSE(context.DownloadLevel(static_cast<unsigned int>(pyramid.size()), &none, nullptr, nullptr).Ok());
+}
 } // namespace
+
+TEST(CudaRegistration, DevicePyramidEqualsCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  DevicePyramidEqualsCPU<2>(97, 0);
+  DevicePyramidEqualsCPU<2>(97, 3);
+}
+
+TEST(CudaRegistration, DevicePyramidEqualsCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  DevicePyramidEqualsCPU<3>(41, 0);
+  DevicePyramidEqualsCPU<3>(41, 1);
+}
 
 TEST(CudaRegistration, StagesAgreeWithCPU2D)
 {

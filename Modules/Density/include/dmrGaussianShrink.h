@@ -41,6 +41,75 @@ namespace dmr
  * reads it: the pass along axis d at the kept indices of axes d..D-1 and at every index of the axes below d. The same
  * operations in the same order give the same floats; the geometry is ShrinkImageFilter's own (its output
  * information). */
+/** What GaussianShrink computes, without computing it: the output's geometry (ShrinkImageFilter's output information
+ * and region, no buffer) and, per axis, the kept input positions and the Gaussian coefficients. The GPU back-end runs
+ * the same passes from it (dmr::cuda::RegistrationContext::Initialize). */
+template<unsigned int D>
+struct GaussianShrinkPlan
+{
+  typename Image<float, D>::Pointer   output;      // information and largest region only
+  std::array<int64_t, D>              inputSize{}; // the input's buffered region
+  std::array<int64_t, D>              outputSize{};
+  std::array<std::vector<int64_t>, D> kept;         // per axis: the kept input positions (buffer-relative)
+  std::array<std::vector<double>, D>  coefficients; // per axis: GaussianOperator<double>, 2 r + 1 of them
+};
+
+template<unsigned int D, typename TImage>
+GaussianShrinkPlan<D>
+PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKernelWidth, const unsigned int * factors)
+{
+  static_assert(TImage::ImageDimension == D, "PlanGaussianShrink: the image must have dimension D");
+  using ImageType = Image<float, D>;
+  GaussianShrinkPlan<D> plan;
+  auto                  shrink = ShrinkImageFilter<TImage, ImageType>::New();
+  shrink->SetInput(image);
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    shrink->SetShrinkFactor(k, factors[k]);
+  }
+  shrink->UpdateOutputInformation();
+  plan.output = ImageType::New();
+  plan.output->CopyInformation(shrink->GetOutput());
+  plan.output->SetRegions(shrink->GetOutput()->GetLargestPossibleRegion());
+
+  // ShrinkImageFilter's index mapping (its offset from the first output index's physical point)
+  const auto &                  inRegion = image->GetBufferedRegion();
+  const auto &                  outRegion = plan.output->GetLargestPossibleRegion();
+  typename ImageType::PointType tempPoint;
+  plan.output->TransformIndexToPhysicalPoint(outRegion.GetIndex(), tempPoint);
+  const auto inputIndex = image->TransformPhysicalPointToIndex(tempPoint);
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    plan.inputSize[k] = static_cast<int64_t>(inRegion.GetSize()[k]);
+    plan.outputSize[k] = static_cast<int64_t>(outRegion.GetSize()[k]);
+    const int64_t offset = std::max<int64_t>(
+      0, static_cast<int64_t>(inputIndex[k]) - static_cast<int64_t>(outRegion.GetIndex()[k]) * factors[k]);
+    plan.kept[k].resize(static_cast<size_t>(plan.outputSize[k]));
+    for (int64_t o = 0; o < plan.outputSize[k]; ++o)
+    {
+      const int64_t i = (static_cast<int64_t>(outRegion.GetIndex()[k]) + o) * factors[k] + offset -
+                        static_cast<int64_t>(inRegion.GetIndex()[k]);
+      if (i < 0 || i >= plan.inputSize[k])
+      {
+        itkGenericExceptionMacro("GaussianShrink: output index " << o << " maps outside the input along axis " << k);
+      }
+      plan.kept[k][static_cast<size_t>(o)] = i;
+    }
+    GaussianOperator<double, D> op;
+    op.SetDirection(k);
+    op.SetVariance(variance);
+    op.SetMaximumKernelWidth(maximumKernelWidth);
+    op.SetMaximumError(0.01);
+    op.CreateDirectional();
+    plan.coefficients[k].resize(op.Size());
+    for (size_t j = 0; j < plan.coefficients[k].size(); ++j)
+    {
+      plan.coefficients[k][j] = op[static_cast<unsigned int>(j)];
+    }
+  }
+  return plan;
+}
+
 template<unsigned int D>
 typename Image<float, D>::Pointer
 GaussianShrink(const Image<float, D> * image,
@@ -49,45 +118,11 @@ GaussianShrink(const Image<float, D> * image,
                const unsigned int *    factors,
                MultiThreaderBase *     threader)
 {
-  using ImageType = Image<float, D>;
-  auto shrink = ShrinkImageFilter<ImageType, ImageType>::New();
-  shrink->SetInput(image);
-  for (unsigned int k = 0; k < D; ++k)
-  {
-    shrink->SetShrinkFactor(k, factors[k]);
-  }
-  shrink->UpdateOutputInformation();
-  auto out = ImageType::New();
-  out->CopyInformation(shrink->GetOutput());
-  out->SetRegions(shrink->GetOutput()->GetLargestPossibleRegion());
+  const GaussianShrinkPlan<D> plan = PlanGaussianShrink<D>(image, variance, maximumKernelWidth, factors);
+  const auto                  out = plan.output;
   out->Allocate();
-
-  // ShrinkImageFilter's index mapping (its offset from the first output index's physical point)
-  const auto &                  inRegion = image->GetBufferedRegion();
-  const auto &                  outRegion = out->GetLargestPossibleRegion();
-  typename ImageType::PointType tempPoint;
-  out->TransformIndexToPhysicalPoint(outRegion.GetIndex(), tempPoint);
-  const auto                          inputIndex = image->TransformPhysicalPointToIndex(tempPoint);
-  std::array<std::vector<int64_t>, D> kept; // per axis: the kept input positions (buffer-relative)
-  std::array<int64_t, D>              n{}, m{};
-  for (unsigned int k = 0; k < D; ++k)
-  {
-    n[k] = static_cast<int64_t>(inRegion.GetSize()[k]);
-    m[k] = static_cast<int64_t>(outRegion.GetSize()[k]);
-    const int64_t offset = std::max<int64_t>(
-      0, static_cast<int64_t>(inputIndex[k]) - static_cast<int64_t>(outRegion.GetIndex()[k]) * factors[k]);
-    kept[k].resize(static_cast<size_t>(m[k]));
-    for (int64_t o = 0; o < m[k]; ++o)
-    {
-      const int64_t i = (static_cast<int64_t>(outRegion.GetIndex()[k]) + o) * factors[k] + offset -
-                        static_cast<int64_t>(inRegion.GetIndex()[k]);
-      if (i < 0 || i >= n[k])
-      {
-        itkGenericExceptionMacro("GaussianShrink: output index " << o << " maps outside the input along axis " << k);
-      }
-      kept[k][static_cast<size_t>(o)] = i;
-    }
-  }
+  const std::array<int64_t, D> & n = plan.inputSize;
+  const std::array<int64_t, D> & m = plan.outputSize;
 
   // passes along axes D-1, ..., 0 (DiscreteGaussianImageFilter's order); shape before the pass along d: n[0..d],
   // m[d+1..D-1]. The first pass reads the image, the last writes the output, the others alternate between two buffers.
@@ -95,18 +130,8 @@ GaussianShrink(const Image<float, D> * image,
   std::vector<float> buffers[2];
   for (int d = static_cast<int>(D) - 1; d >= 0; --d)
   {
-    GaussianOperator<double, D> op;
-    op.SetDirection(static_cast<unsigned int>(d));
-    op.SetVariance(variance);
-    op.SetMaximumKernelWidth(maximumKernelWidth);
-    op.SetMaximumError(0.01);
-    op.CreateDirectional();
-    std::vector<double> c(op.Size());
-    for (size_t k = 0; k < c.size(); ++k)
-    {
-      c[k] = op[static_cast<unsigned int>(k)];
-    }
-    const int64_t r = static_cast<int64_t>(c.size() / 2);
+    const std::vector<double> & c = plan.coefficients[d];
+    const int64_t               r = static_cast<int64_t>(c.size() / 2);
 
     std::array<int64_t, D> shape{}; // of the source
     for (unsigned int k = 0; k < D; ++k)
@@ -124,7 +149,7 @@ GaussianShrink(const Image<float, D> * image,
       above *= shape[k];
     }
     const int64_t                length = shape[d], outLength = m[d];
-    const std::vector<int64_t> & at = kept[d];
+    const std::vector<int64_t> & at = plan.kept[d];
     std::vector<float> &         buffer = buffers[d % 2];
     if (d > 0)
     {

@@ -22,6 +22,7 @@
 #include "itkVector.h"
 #include "itkSimpleDataObjectDecorator.h"
 #include "dmrGrid.h"
+#include "dmrGaussianShrink.h"
 #include "itkDynamicMeshRegistrationEnums.h"
 #include <vector>
 
@@ -152,6 +153,10 @@ public:
     std::vector<float> fixed;
     std::vector<float> moving;
     std::vector<float> movingGradient; // grid frame of the fixed image, per mm, D interleaved
+    // moving grid frame -> fixed grid frame (the rotation the gradient is taken through; the same for every level)
+    double R[ImageDimension][ImageDimension];
+    // incomplete pyramid (GetPyramid(false)), levels above 0: how to build fixed and moving from level 0's images
+    dmr::GaussianShrinkPlan<ImageDimension> fixedPlan, movingPlan;
     // fixed-level continuous index = FA * fineIndex + Fc
     double FA[ImageDimension][ImageDimension];
     double Fc[ImageDimension];
@@ -161,12 +166,16 @@ public:
     double MB[ImageDimension][ImageDimension];
   };
 
-  /** The pyramids of the current inputs (built on first use, kept while the images are unchanged): what the GPU
-   * back-end uploads. Level l weighs (pixels of level l) / (fixed pixels) in the MSSD (see GenerateData). */
+  /** The pyramids of the current inputs (built on first use, kept while the images are unchanged). Level l weighs
+   * (pixels of level l) / (fixed pixels) in the MSSD (see GenerateData).
+   * complete (default): every level's images and moving gradient, as GenerateData uses them.
+   * Incomplete (what the GPU back-end uploads): level 0's fixed and moving images, every level's grids, maps and R, and
+   * above level 0 the plans of the smoothing and shrinking instead of the images; no moving gradients. The device
+   * builds the rest from them, the same floats. A later complete call rebuilds the pyramids completely. */
   const std::vector<PyramidLevel> &
-  GetPyramid()
+  GetPyramid(bool complete = true)
   {
-    this->BuildPyramids();
+    this->BuildPyramids(complete);
     return m_Levels;
   }
 
@@ -198,7 +207,7 @@ protected:
 
 private:
   void
-  BuildPyramids();
+  BuildPyramids(bool complete);
 
   unsigned int m_NumberOfLevels{ 3 };
   double       m_AlphaFactor{ 0.1 };
@@ -213,6 +222,7 @@ private:
   std::vector<PyramidLevel> m_Levels;
   ModifiedTimeType   m_PyramidTime{ 0 };
   unsigned int       m_PyramidLevels{ 0 };
+  bool               m_PyramidComplete{ false }; // every level holds its images and moving gradient
   const void *       m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
   const void *       m_PyramidMoving{ nullptr };
   double             m_IntensityRange{ 0.0 };

@@ -122,6 +122,13 @@ void
 CopyToFloat(const TImage * image, std::vector<float> & out)
 {
   out.resize(image->GetLargestPossibleRegion().GetNumberOfPixels());
+  if (image->GetBufferedRegion() == image->GetLargestPossibleRegion())
+  {
+    // scalar images: the buffer in index order, each value converted as the iterator's Get() would
+    const auto * buffer = image->GetBufferPointer();
+    std::transform(buffer, buffer + out.size(), out.begin(), [](const auto & v) { return static_cast<float>(v); });
+    return;
+  }
   ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
   size_t                           i = 0;
   for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
@@ -241,15 +248,15 @@ IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D]
 }
 } // namespace dmr
 
-template <typename TF, typename TM, typename TD, typename TO>
+template<typename TF, typename TM, typename TD, typename TO>
 void
-DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
+DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
 {
   const FixedImageType *  fixed = this->GetFixedImage();
   const MovingImageType * moving = this->GetMovingImage();
   const ModifiedTimeType  inputTime = std::max(fixed->GetMTime(), moving->GetMTime());
   if (!m_Levels.empty() && m_PyramidTime >= inputTime && m_PyramidLevels == m_NumberOfLevels &&
-      m_PyramidFixed == fixed && m_PyramidMoving == moving)
+      m_PyramidFixed == fixed && m_PyramidMoving == moving && (m_PyramidComplete || !complete))
   {
     return; // the pyramids depend only on the images, not on the displacement field: keep them across iterations
   }
@@ -284,35 +291,79 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
     return out;
   };
   // level l: ShrinkImageFilter(DiscreteGaussianImageFilter(image)) with sigma = 0.5 x shrink factor pixels, as ITK's
-  // pyramids, computed only where the shrink keeps it (dmr::GaussianShrink: the same floats)
-  auto makeLevel = [this](const typename FloatImageType::Pointer & image, unsigned int level) {
-    if (level == 0)
-    {
-      return image;
-    }
+  // pyramids, computed only where the shrink keeps it (dmr::GaussianShrink: the same floats). Incomplete: the plan
+  // only (geometry, kept positions, coefficients), for the GPU back-end to run.
+  auto shrinkOf = [](const auto * image, unsigned int level, unsigned int * factors)
+  {
     const unsigned int factor = 1u << level;
-    unsigned int       factors[ImageDimension];
     for (unsigned int k = 0; k < ImageDimension; ++k)
     {
       const auto n = image->GetLargestPossibleRegion().GetSize()[k];
       factors[k] = std::max<unsigned int>(1, std::min<unsigned int>(factor, n / 2));
     }
-    return dmr::GaussianShrink<ImageDimension>(
-      image.GetPointer(), 0.25 * factor * factor, 64, factors, this->GetMultiThreader());
+    return 0.25 * factor * factor; // the variance
   };
-  const auto fixedFloat = toFloat(fixed);
-  const auto movingFloat = toFloat(moving);
+  typename FloatImageType::Pointer fixedFloat, movingFloat;
+  if (complete)
+  {
+    fixedFloat = toFloat(fixed);
+    movingFloat = toFloat(moving);
+  }
 
   for (unsigned int l = 0; l < m_NumberOfLevels; ++l)
   {
-    PyramidLevel & L = m_Levels[l];
-    auto    f = makeLevel(fixedFloat, l);
-    auto    m = makeLevel(movingFloat, l);
+    PyramidLevel &                   L = m_Levels[l];
+    typename FloatImageType::Pointer f, m; // the level's images (incomplete: their geometry only above level 0)
+    if (l == 0)
+    {
+      if (complete)
+      {
+        f = fixedFloat;
+        m = movingFloat;
+        dmr::CopyToFloat(f.GetPointer(), L.fixed);
+        dmr::CopyToFloat(m.GetPointer(), L.moving);
+      }
+      else
+      {
+        f = FloatImageType::New();
+        m = FloatImageType::New();
+        f->CopyInformation(fixed);
+        f->SetRegions(fixed->GetLargestPossibleRegion());
+        m->CopyInformation(moving);
+        m->SetRegions(moving->GetLargestPossibleRegion());
+        dmr::CopyToFloat(fixed, L.fixed); // the cast's floats (static_cast), without the cast image
+        dmr::CopyToFloat(moving, L.moving);
+      }
+    }
+    else
+    {
+      unsigned int fixedFactors[ImageDimension], movingFactors[ImageDimension];
+      const double fixedVariance = shrinkOf(fixed, l, fixedFactors);
+      const double movingVariance = shrinkOf(moving, l, movingFactors);
+      if (complete)
+      {
+        f = dmr::GaussianShrink<ImageDimension>(
+          fixedFloat.GetPointer(), fixedVariance, 64, fixedFactors, this->GetMultiThreader());
+        m = dmr::GaussianShrink<ImageDimension>(
+          movingFloat.GetPointer(), movingVariance, 64, movingFactors, this->GetMultiThreader());
+        dmr::CopyToFloat(f.GetPointer(), L.fixed);
+        dmr::CopyToFloat(m.GetPointer(), L.moving);
+      }
+      else
+      {
+        L.fixedPlan = dmr::PlanGaussianShrink<ImageDimension>(fixed, fixedVariance, 64, fixedFactors);
+        L.movingPlan = dmr::PlanGaussianShrink<ImageDimension>(moving, movingVariance, 64, movingFactors);
+        f = L.fixedPlan.output;
+        m = L.movingPlan.output;
+      }
+    }
     L.fixedGrid = GridType::FromImage(f);
     L.movingGrid = GridType::FromImage(m);
-    dmr::CopyToFloat(f.GetPointer(), L.fixed);
-    dmr::CopyToFloat(m.GetPointer(), L.moving);
-    dmr::GradientInto<ImageDimension>(this->GetMultiThreader(), L.movingGrid, L.moving, R, L.movingGradient);
+    std::copy(&R[0][0], &R[0][0] + ImageDimension * ImageDimension, &L.R[0][0]);
+    if (complete)
+    {
+      dmr::GradientInto<ImageDimension>(this->GetMultiThreader(), L.movingGrid, L.moving, R, L.movingGradient);
+    }
     dmr::IndexToContinuousIndexMap<ImageDimension>(fixed, f.GetPointer(), L.FA, L.Fc);
     dmr::IndexToContinuousIndexMap<ImageDimension>(fixed, m.GetPointer(), L.MA, L.Mc);
     // physical vector -> moving-level index vector: diag(1/spacing) Direction^-1
@@ -331,6 +382,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids()
   m_PyramidFixed = fixed;
   m_PyramidMoving = moving;
   m_PyramidLevels = m_NumberOfLevels;
+  m_PyramidComplete = complete;
 }
 
 template <typename TF, typename TM, typename TD, typename TO>
@@ -339,7 +391,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
 {
   constexpr unsigned int D = ImageDimension;
   ProgressReporter       progress(this, 0, 3);
-  this->BuildPyramids();
+  this->BuildPyramids(true);
   progress.CompletedPixel();
 
   const FixedImageType *        fixed = this->GetFixedImage();

@@ -315,6 +315,94 @@ AddKernel(float * data, long long n, double alpha)
   }
 }
 
+/** The moving level's gradient image as dmr::GradientInto computes it on the CPU: per axis the central difference (one-
+ * sided at the border, 0 on an axis of one pixel) over the distance in mm, then rotated by R into the fixed grid frame,
+ * D interleaved floats. Every operation is explicitly rounded (no fused multiply-add) in the CPU's order, so the floats
+ * are the CPU's, bit for bit. */
+struct GradientParams
+{
+  int       size[3];
+  long long stride[3];
+  long long n;
+  double    spacing[3];
+  double    R[3][3];
+};
+
+template<int D>
+__global__ void
+MovingGradientKernel(GradientParams g, const float * image, float * out)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double    d[D];
+    long long rest = p;
+    for (int k = 0; k < D; ++k)
+    {
+      const int       i = static_cast<int>(rest % g.size[k]);
+      const long long lo = i > 0 ? p - g.stride[k] : p;
+      const long long hi = i + 1 < g.size[k] ? p + g.stride[k] : p;
+      rest /= g.size[k];
+      const double h = __dmul_rn(static_cast<double>(hi > lo ? (hi - lo) / g.stride[k] : 1), g.spacing[k]);
+      d[k] = hi > lo ? __ddiv_rn(__dsub_rn(static_cast<double>(image[hi]), static_cast<double>(image[lo])), h) : 0.0;
+    }
+    for (int r = 0; r < D; ++r)
+    {
+      double v = 0.0;
+      for (int k = 0; k < D; ++k)
+      {
+        v = __dadd_rn(v, __dmul_rn(g.R[r][k], d[k]));
+      }
+      out[p * D + r] = __double2float_rn(v);
+    }
+  }
+}
+
+/** One pass of dmr::GaussianShrink along `axis`: target(i) = float(sum_k c_k double(source(i with axis index clamp(
+ * kept[i_axis] + k - r)))) summed in kernel order, every operation explicitly rounded (no fused multiply-add) as on the
+ * CPU. source has `shape`, the target the same shape but kept-count pixels along the axis. */
+__global__ void
+ShrinkPassKernel(const float *     source,
+                 long long         s0,
+                 long long         s1,
+                 long long         s2,
+                 int               axis,
+                 long long         outLength,
+                 const long long * kept,
+                 const double *    c,
+                 int               width,
+                 float *           target,
+                 long long         total)
+{
+  const long long shape[3] = { s0, s1, s2 };
+  long long       tshape[3] = { s0, s1, s2 };
+  tshape[axis] = outLength;
+  const long long stride = axis == 0 ? 1 : (axis == 1 ? s0 : s0 * s1); // of the axis in the source
+  const long long length = shape[axis];
+  const int       r = width / 2;
+  for (long long t = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; t < total;
+       t += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    long long i[3];
+    long long rest = t;
+    for (int k = 0; k < 3; ++k)
+    {
+      i[k] = rest % tshape[k];
+      rest /= tshape[k];
+    }
+    const long long centre = kept[i[axis]];
+    i[axis] = 0;
+    const float * line = source + i[0] + shape[0] * (i[1] + shape[1] * i[2]);
+    double        sum = 0.0;
+    for (int k = 0; k < width; ++k)
+    {
+      const long long j = min(max(centre + k - r, 0LL), length - 1);
+      sum = __dadd_rn(sum, __dmul_rn(c[k], static_cast<double>(line[j * stride])));
+    }
+    target[t] = __double2float_rn(sum);
+  }
+}
+
 /** Barycentric coordinates of the pixel at idx in an element (BarycentricMap::Barycentric). */
 template <int D>
 __device__ inline void
@@ -1200,6 +1288,57 @@ CGSolveKernel(CGSolveParams a)
 }
 } // namespace
 
+/** dmr::GaussianShrink on the device: `out` (outSize pixels) from `source` (inSize pixels) by the passes of `plan`,
+ * the last axis first; the intermediate images live in scratch buffers for the call. */
+static void
+ShrinkOnDevice(unsigned int          dimension,
+               const float *         source,
+               const int *           inSize,
+               const int *           outSize,
+               const ShrinkView &    plan,
+               DeviceBuffer<float> & out)
+{
+  long long shape[3] = { 1, 1, 1 };
+  for (unsigned int k = 0; k < dimension; ++k)
+  {
+    shape[k] = inSize[k];
+    if (!plan.kept[k] || !plan.coefficients[k] || plan.width[k] % 2 != 1)
+    {
+      throw CudaError("a pyramid level without its image or a complete shrink plan");
+    }
+  }
+  DeviceBuffer<float>     buffers[2];
+  DeviceBuffer<long long> kept;
+  DeviceBuffer<double>    coefficients;
+  const float *           from = source;
+  for (int d = static_cast<int>(dimension) - 1; d >= 0; --d)
+  {
+    const long long       outLength = outSize[d];
+    const long long       total = shape[0] * shape[1] * shape[2] / shape[d] * outLength;
+    DeviceBuffer<float> & to = d > 0 ? buffers[d % 2] : out;
+    to.Resize(static_cast<size_t>(total));
+    static_assert(sizeof(long long) == sizeof(int64_t), "kept positions are 64-bit");
+    kept.Upload(reinterpret_cast<const long long *>(plan.kept[d]), static_cast<size_t>(outLength));
+    coefficients.Upload(plan.coefficients[d], plan.width[d]);
+    ShrinkPassKernel<<<GridBlocks(total), Threads>>>(from,
+                                                     shape[0],
+                                                     shape[1],
+                                                     shape[2],
+                                                     d,
+                                                     outLength,
+                                                     kept.Data(),
+                                                     coefficients.Data(),
+                                                     static_cast<int>(plan.width[d]),
+                                                     to.Data(),
+                                                     total);
+    CheckLaunch("ShrinkPassKernel");
+    // the scratch buffers are freed (cudaFree synchronises) only after the last pass has read them
+    from = to.Data();
+    shape[d] = outLength;
+  }
+  Check(cudaDeviceSynchronize(), "pyramid level");
+}
+
 struct RegistrationContext::Impl
 {
   unsigned int dimension{ 0 };
@@ -1383,9 +1522,61 @@ RegistrationContext::Initialize(unsigned int                          dimension,
       {
         throw CudaError("pyramid level 0 of the fixed image must be the registration grid");
       }
-      m.levelFixed[l].Upload(v.fixed, nf);
-      m.levelMoving[l].Upload(v.moving, nm);
-      m.levelGradient[l].Upload(v.movingGradient, nm * D);
+      if (l == 0 && (!v.fixed || !v.moving))
+      {
+        throw CudaError("pyramid level 0 must hold the fixed and the moving image");
+      }
+      if (v.fixed)
+      {
+        m.levelFixed[l].Upload(v.fixed, nf);
+      }
+      else if (l > 0)
+      {
+        ShrinkOnDevice(
+          dimension, m.levelFixed[0].Data(), m.levels.level[0].fixedSize, L.fixedSize, v.fixedShrink, m.levelFixed[l]);
+      }
+      if (v.moving)
+      {
+        m.levelMoving[l].Upload(v.moving, nm);
+      }
+      else if (l > 0)
+      {
+        ShrinkOnDevice(dimension,
+                       m.levelMoving[0].Data(),
+                       m.levels.level[0].movingSize,
+                       L.movingSize,
+                       v.movingShrink,
+                       m.levelMoving[l]);
+      }
+      if (v.movingGradient)
+      {
+        m.levelGradient[l].Upload(v.movingGradient, nm * D);
+      }
+      else
+      {
+        GradientParams g{};
+        for (int k = 0; k < 3; ++k)
+        {
+          g.size[k] = L.movingSize[k];
+          g.stride[k] = L.movingStride[k];
+          g.spacing[k] = k < static_cast<int>(dimension) ? v.movingSpacing[k] : 1.0;
+          for (int j = 0; j < 3; ++j)
+          {
+            g.R[k][j] = v.R[k][j];
+          }
+        }
+        g.n = static_cast<long long>(nm);
+        m.levelGradient[l].Resize(nm * D);
+        if (dimension == 2)
+        {
+          MovingGradientKernel<2><<<GridBlocks(g.n), Threads>>>(g, m.levelMoving[l].Data(), m.levelGradient[l].Data());
+        }
+        else
+        {
+          MovingGradientKernel<3><<<GridBlocks(g.n), Threads>>>(g, m.levelMoving[l].Data(), m.levelGradient[l].Data());
+        }
+        CheckLaunch("MovingGradientKernel");
+      }
       L.fixed = m.levelFixed[l].Data();
       L.moving = m.levelMoving[l].Data();
       L.gradient = m.levelGradient[l].Data();
@@ -1472,6 +1663,35 @@ Status
 RegistrationContext::DownloadForce(float * host) const
 {
   return Guard([&] { m_Impl->force.Download(host, m_Impl->numberOfPixels * m_Impl->dimension); });
+}
+
+Status
+RegistrationContext::DownloadLevel(unsigned int level, float * fixed, float * moving, float * movingGradient) const
+{
+  return Guard(
+    [&]
+    {
+      const Impl & m = *m_Impl;
+      if (level >= static_cast<unsigned int>(m.levels.count))
+      {
+        throw CudaError("no pyramid level " + std::to_string(level));
+      }
+      const DeviceLevel & L = m.levels.level[level];
+      const size_t        nf = static_cast<size_t>(L.fixedSize[0]) * L.fixedSize[1] * L.fixedSize[2];
+      const size_t        nm = static_cast<size_t>(L.movingSize[0]) * L.movingSize[1] * L.movingSize[2];
+      if (fixed)
+      {
+        m.levelFixed[level].Download(fixed, nf);
+      }
+      if (moving)
+      {
+        m.levelMoving[level].Download(moving, nm);
+      }
+      if (movingGradient)
+      {
+        m.levelGradient[level].Download(movingGradient, nm * m.dimension);
+      }
+    });
 }
 
 Status

@@ -32,8 +32,20 @@ namespace dmr
 {
 namespace cuda
 {
+/** How a pyramid level's image is made from level 0's (dmr::GaussianShrinkPlan): per axis the kept level-0 positions
+ * (one per level pixel along the axis) and the Gaussian coefficients (`width` of them, an odd number); the passes run
+ * along the last axis first. */
+struct ShrinkView
+{
+  const int64_t * kept[3]{ nullptr, nullptr, nullptr };
+  const double *  coefficients[3]{ nullptr, nullptr, nullptr };
+  size_t          width[3]{ 0, 0, 0 };
+};
+
 /** One pyramid level as the CPU path holds it (DensityFieldFilter::PyramidLevel), by host pointers; only the first
- * `dimension` entries of every array are read. */
+ * `dimension` entries of every array are read. Images the view does not hold are built on the device, the same floats
+ * as the CPU's: a level's fixed or moving image from level 0's by its ShrinkView (level 0 must hold both), and the
+ * moving gradient from the level's moving image, movingSpacing and R. */
 struct PyramidLevelView
 {
   size_t        fixedSize[3]{ 1, 1, 1 };
@@ -41,6 +53,9 @@ struct PyramidLevelView
   const float * fixed{ nullptr };          // level 0: the fixed image itself, on the registration grid
   const float * moving{ nullptr };
   const float * movingGradient{ nullptr }; // D interleaved, per mm, rotated into the fixed grid frame
+  ShrinkView    fixedShrink, movingShrink; // read where fixed or moving is nullptr
+  double        movingSpacing[3]{ 1.0, 1.0, 1.0 };
+  double        R[3][3]{};                 // moving grid frame -> fixed grid frame (DensityFieldFilter::PyramidLevel)
   double        FA[3][3]{};                // fixed-level continuous index = FA fineIndex + Fc
   double        Fc[3]{};
   double        MA[3][3]{};                // moving-level continuous index = MA fineIndex + Mc + MG w
@@ -70,7 +85,9 @@ public:
   RegistrationContext &
   operator=(const RegistrationContext &) = delete;
 
-  /** Uploads the pyramid and the mask (nullptr: every pixel), allocates the per-pixel fields and sets w = 0. */
+  /** Uploads the pyramid and the mask (nullptr: every pixel), allocates the per-pixel fields and sets w = 0. What the
+   * views do not hold is built on the device (see PyramidLevelView): the floats of dmr::GaussianShrink and
+   * dmr::GradientInto, bit for bit. */
   Status
   Initialize(unsigned int                          dimension,
              const size_t *                        size,
@@ -95,6 +112,11 @@ public:
   /** Host copy of the grid-frame force (numberOfPixels x dimension floats). */
   Status
   DownloadForce(float * host) const;
+
+  /** Host copies of pyramid level `level` as the device holds it (uploaded or built there): its fixed and moving
+   * images (the level's pixels each) and the moving gradient (moving pixels x dimension floats); nullptr: not read. */
+  Status
+  DownloadLevel(unsigned int level, float * fixed, float * moving, float * movingGradient) const;
 
   /** Uploads a simplex mesh and rasterises it: every pixel gets the lowest-id element containing it (the CPU
    * BarycentricMap rule, same per-pixel test). nodes: grid frame, mm; elements: dimension+1 node ids each;

@@ -536,8 +536,9 @@ ThrowOnError(const cuda::Status & status, const char * stage)
   }
 }
 
-/** The device's view of the CPU pyramid (DensityFieldFilter::PyramidLevel): sizes, maps, MSSD weights, and the
- * moving-level index per mm of the grid-frame displacement (MB maps a physical displacement, u_phys = Direction w). */
+/** The device's view of the pyramid (DensityFieldFilter::PyramidLevel, complete or not): sizes, maps, MSSD weights,
+ * and the moving-level index per mm of the grid-frame displacement (MB maps a physical displacement, u_phys =
+ * Direction w). */
 template <unsigned int D, typename TLevel, typename TDirection>
 std::vector<cuda::PyramidLevelView>
 PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedDirection, size_t numberOfPixels)
@@ -565,9 +566,29 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
         v.MG[r][k] = mg;
       }
     }
-    v.fixed = L.fixed.data();
-    v.moving = L.moving.data();
-    v.movingGradient = L.movingGradient.data();
+    // an incomplete pyramid (DensityFieldFilter::GetPyramid(false)): the device builds what is not here from the plans
+    v.fixed = L.fixed.empty() ? nullptr : L.fixed.data();
+    v.moving = L.moving.empty() ? nullptr : L.moving.data();
+    v.movingGradient = L.movingGradient.empty() ? nullptr : L.movingGradient.data();
+    auto shrinkView = [](const auto & plan, cuda::ShrinkView & view)
+    {
+      for (unsigned int k = 0; k < D && !plan.kept[k].empty(); ++k)
+      {
+        view.kept[k] = plan.kept[k].data();
+        view.coefficients[k] = plan.coefficients[k].data();
+        view.width[k] = plan.coefficients[k].size();
+      }
+    };
+    shrinkView(L.fixedPlan, v.fixedShrink);
+    shrinkView(L.movingPlan, v.movingShrink);
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      v.movingSpacing[r] = L.movingGrid.spacing[r];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        v.R[r][k] = L.R[r][k];
+      }
+    }
     v.weight = static_cast<double>(L.fixedGrid.numberOfPixels) / static_cast<double>(numberOfPixels);
   }
   return views;
@@ -649,9 +670,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   DisplacementFieldType * field = this->GetDisplacementField();
   this->ConfigureStages();
 
-  // the pyramids are built once on the CPU by the density filter (the same levels as the CPU path) and uploaded
+  // the pyramids: level 0's images converted to float on the CPU and uploaded, the coarser levels and the moving
+  // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids)
   auto t0 = Clock::now();
-  const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(), fixed->GetDirection(), n);
+  const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
   std::vector<uint8_t> mask;
   if (const auto * maskImage = this->GetFixedMask())
   {

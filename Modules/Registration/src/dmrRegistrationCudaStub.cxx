@@ -74,6 +74,11 @@ RegistrationContext::DownloadForce(float *) const
   return Unavailable();
 }
 Status
+RegistrationContext::DownloadLevel(unsigned int, float *, float *, float *) const
+{
+  return Unavailable();
+}
+Status
 RegistrationContext::SetMesh(const double *, size_t, const int32_t *, size_t, const double *, const int64_t *)
 {
   return Unavailable();
