@@ -184,6 +184,11 @@ public:
    * kernel launches; crossover measured in docs/benchmarks.md). 0: always on the device. Default 300. */
   itkSetMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
   itkGetConstMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
+  /** CUDA back-end: the most conjugate-gradient products one device solve may take before it gives up and the CPU
+   * solver (whose last resort is a factorisation) solves that system instead, and the rest of that mesh's systems.
+   * 0 (default): max(1000, 4 x free degrees of freedom). */
+  itkSetMacro(DeviceSolverMaximumIterations, SizeValueType);
+  itkGetConstMacro(DeviceSolverMaximumIterations, SizeValueType);
   /** Device memory the CUDA back-end held at its peak (bytes; 0 on the CPU path). */
   itkGetConstMacro(DeviceBytes, SizeValueType);
 
@@ -301,6 +306,7 @@ private:
   BackendEnum   m_BackendUsed{ BackendEnum::CPU };
   size_t        m_DeviceBytes{ 0 };
   SizeValueType m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
+  SizeValueType m_DeviceSolverMaximumIterations{ 0 };
 
   double                       m_Beta{ 0.0 };
   unsigned int                 m_CurrentIteration{ 0 };

@@ -845,7 +845,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         dmr::ThrowOnError(context.SolveElasticity(nodalForce.data(),
                                                   nodalU.data(),
                                                   m_Solver->GetTolerance(),
-                                                  std::max<size_t>(1000, 4 * freeDegrees),
+                                                  m_DeviceSolverMaximumIterations > 0
+                                                    ? static_cast<size_t>(m_DeviceSolverMaximumIterations)
+                                                    : std::max<size_t>(1000, 4 * freeDegrees),
                                                   record.solverIterations,
                                                   converged),
                           "elastic solve");
@@ -951,6 +953,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
   os << indent << "DeviceBytes: " << m_DeviceBytes << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
+  os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "Beta: " << m_Beta << std::endl;
   os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;
