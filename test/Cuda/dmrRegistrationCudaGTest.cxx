@@ -381,6 +381,34 @@ StagesAgree(unsigned int nodes, unsigned int n)
   EXPECT_GT(maxUpdate, 0.1);
   ASSERT_TRUE(context.DownloadField(after.data()).Ok());
   EXPECT_NE(after, before);
+  // the field rotated into the physical frame on the device: FEMRegistrationMethod::WriteGridFieldToImage's floats
+  {
+    const auto &       direction = fixed->GetDirection();
+    double             M[D * D];
+    std::vector<float> expected(after.size()), physical(after.size());
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        M[r * D + k] = direction[r][k];
+      }
+    }
+    for (size_t p = 0; p < grid.numberOfPixels; ++p)
+    {
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        double v = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          v += direction[r][k] * after[p * D + k];
+        }
+        expected[p * D + r] = static_cast<float>(v);
+      }
+    }
+    ASSERT_TRUE(context.DownloadPhysicalField(M, physical.data()).Ok());
+    EXPECT_EQ(std::memcmp(physical.data(), expected.data(), expected.size() * sizeof(float)), 0);
+    EXPECT_NE(physical, after) << "the direction is a rotation: the frames differ";
+  }
   ASSERT_TRUE(context.RevertUpdate().Ok());
   ASSERT_TRUE(context.DownloadField(after.data()).Ok());
   EXPECT_EQ(after, before);

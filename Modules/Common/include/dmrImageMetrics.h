@@ -33,7 +33,20 @@ template <typename TImage>
 std::pair<double, double>
 IntensityRange(const TImage * image)
 {
-  double                           lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
+  double lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
+  if (image->GetBufferedRegion() == image->GetLargestPossibleRegion())
+  {
+    // the whole buffer in memory order: the same values as the iterator's, without its per-pixel index bookkeeping
+    const auto * p = image->GetBufferPointer();
+    const auto * end = p + image->GetLargestPossibleRegion().GetNumberOfPixels();
+    for (; p != end; ++p)
+    {
+      const double v = static_cast<double>(*p);
+      lo = std::min(lo, v);
+      hi = std::max(hi, v);
+    }
+    return { lo, hi };
+  }
   ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
   {

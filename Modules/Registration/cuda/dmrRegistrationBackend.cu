@@ -403,6 +403,37 @@ ShrinkPassKernel(const float *     source,
   }
 }
 
+/** out = M v at every pixel (D floats each), the sum taken in double from 0 in column order with every operation
+ * rounded on its own, as the CPU's WriteGridFieldToImage does, then rounded to float. */
+struct RotationParams
+{
+  double M[3][3];
+};
+
+template<int D>
+__global__ void
+RotateKernel(RotationParams r, const float * v, long long n, float * out)
+{
+  for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < n;
+       p += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double x[D];
+    for (int k = 0; k < D; ++k)
+    {
+      x[k] = static_cast<double>(v[p * D + k]);
+    }
+    for (int i = 0; i < D; ++i)
+    {
+      double s = 0.0;
+      for (int k = 0; k < D; ++k)
+      {
+        s = __dadd_rn(s, __dmul_rn(r.M[i][k], x[k]));
+      }
+      out[p * D + i] = __double2float_rn(s);
+    }
+  }
+}
+
 /** Barycentric coordinates of the pixel at idx in an element (BarycentricMap::Barycentric). */
 template <int D>
 __device__ inline void
@@ -2088,6 +2119,36 @@ Status
 RegistrationContext::DownloadField(float * host) const
 {
   return Guard([&] { m_Impl->w.Download(host, m_Impl->numberOfPixels * m_Impl->dimension); });
+}
+
+Status
+RegistrationContext::DownloadPhysicalField(const double * direction, float * host) const
+{
+  return Guard(
+    [&]
+    {
+      const Impl &       m = *m_Impl;
+      RotationParams     r{};
+      const unsigned int D = m.dimension;
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          r.M[i][k] = direction[i * D + k];
+        }
+      }
+      DeviceBuffer<float> rotated(m.numberOfPixels * D);
+      if (D == 2)
+      {
+        RotateKernel<2><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
+      }
+      else
+      {
+        RotateKernel<3><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
+      }
+      CheckLaunch("RotateKernel");
+      rotated.Download(host, m.numberOfPixels * D);
+    });
 }
 
 Status

@@ -173,6 +173,10 @@ public:
   /** Host copy of w (numberOfPixels x dimension floats, grid frame). */
   Status
   DownloadField(float * host) const;
+  /** Host copy of w in the physical frame: direction (dimension x dimension, row-major) times w at every pixel, D
+   * floats per pixel: the floats of the CPU's rotation (double sums in column order, rounded once), bit for bit. */
+  Status
+  DownloadPhysicalField(const double * direction, float * host) const;
   /** Sets w from the host (grid frame). */
   Status
   UploadField(const float * host);

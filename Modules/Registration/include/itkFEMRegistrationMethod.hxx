@@ -27,6 +27,7 @@
 #include "dmrDualMeshBuilder.h"
 #include "dmrImageMetrics.h"
 #include <chrono>
+#include <type_traits>
 
 namespace itk
 {
@@ -512,13 +513,18 @@ FEMRegistrationMethod<TF, TM, TD>::MakeTransformOutput()
   const auto * src = field->GetBufferPointer();
   auto *       dst = transformField->GetBufferPointer();
   const size_t n = field->GetLargestPossibleRegion().GetNumberOfPixels();
-  for (size_t p = 0; p < n; ++p)
-  {
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      dst[p][k] = src[p][k];
-    }
-  }
+  dmr::ParallelForChunks(this->GetMultiThreader(),
+                         n,
+                         [&](size_t b, size_t e)
+                         {
+                           for (size_t p = b; p < e; ++p)
+                           {
+                             for (unsigned int k = 0; k < D; ++k)
+                             {
+                               dst[p][k] = src[p][k];
+                             }
+                           }
+                         });
   auto transform = TransformType::New();
   transform->SetDisplacementField(transformField);
   this->GetTransformOutput()->Set(transform);
@@ -915,6 +921,25 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   }
   m_FinalSSD = statistics.ssd * dV;
   m_FinalMSSD = statistics.mssd * dV;
+  using FieldValueType = typename DisplacementFieldType::PixelType::ValueType;
+  if constexpr (std::is_same_v<FieldValueType, float> &&
+                sizeof(typename DisplacementFieldType::PixelType) == D * sizeof(float))
+  {
+    // rotated into the physical frame on the device and downloaded straight into the output (the same floats as
+    // WriteGridFieldToImage)
+    const auto & direction = fixed->GetDirection();
+    double       M[D * D];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        M[r * D + k] = direction[r][k];
+      }
+    }
+    dmr::ThrowOnError(context.DownloadPhysicalField(M, reinterpret_cast<float *>(field->GetBufferPointer())),
+                      "field download");
+  }
+  else
   {
     std::vector<float> w(n * D);
     dmr::ThrowOnError(context.DownloadField(w.data()), "field download");

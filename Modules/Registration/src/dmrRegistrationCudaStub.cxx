@@ -119,6 +119,11 @@ RegistrationContext::ApplyUpdate(const double *, double, double &, unsigned int 
   return Unavailable();
 }
 Status
+RegistrationContext::DownloadPhysicalField(const double *, float *) const
+{
+  return Unavailable();
+}
+Status
 RegistrationContext::DownloadField(float *) const
 {
   return Unavailable();
