@@ -87,6 +87,21 @@ DeviceDescription()
 {
   return Query().available ? Query().description : Query().reason;
 }
+
+Status
+CreateContext()
+{
+  if (!Query().available)
+  {
+    return Status::Error(Query().reason);
+  }
+  const cudaError_t status = cudaFree(nullptr); // the runtime's documented way to create the primary context
+  if (status != cudaSuccess)
+  {
+    return Status::Error(std::string("CUDA context creation failed (") + cudaGetErrorString(status) + ")");
+  }
+  return Status::Success();
+}
 } // namespace cuda
 } // namespace dmr
 } // namespace itk

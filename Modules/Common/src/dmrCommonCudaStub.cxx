@@ -40,6 +40,12 @@ DeviceDescription()
 {
   return UnavailableReason();
 }
+
+Status
+CreateContext()
+{
+  return Status::Error(UnavailableReason());
+}
 } // namespace cuda
 } // namespace dmr
 } // namespace itk
