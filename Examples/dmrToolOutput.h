@@ -21,12 +21,16 @@
 // Output of the command-line tools: nothing half-written reaches the output directory.
 #include "dmrToolErrors.h"
 #include "itkImageFileWriter.h"
+#include "itkMultiThreaderBase.h"
 #include "itksys/Directory.hxx"
 #include "itksys/SystemTools.hxx"
+#include <algorithm>
 #include <cstdio>
 #include <stdexcept>
 #include <string>
 #include <unistd.h>
+#include <vector>
+#include <zlib.h>
 
 namespace dmrtools
 {
@@ -90,16 +94,120 @@ struct Staging
   }
 };
 
-/** Writes an image (compressed where the format allows). */
+/** Copies the file `in` to `out` gzip-compressed on all of ITK's work units: the data in chunks of `chunk` bytes, each
+ * a complete gzip member (zlib's default level), the members concatenated in order. RFC 1952 allows several members
+ * in one file and gzip readers (zlib's gzread, which ITK's NIfTI reader uses, Python's gzip, gunzip) read them as one
+ * stream. Throws std::runtime_error on a read, compression or write failure. */
+inline void
+GzipFileParallel(const std::string & in, const std::string & out, size_t chunk = size_t(1) << 20)
+{
+  std::FILE * source = std::fopen(in.c_str(), "rb");
+  if (!source)
+  {
+    throw std::runtime_error("cannot read " + in);
+  }
+  std::FILE * target = std::fopen(out.c_str(), "wb");
+  if (!target)
+  {
+    std::fclose(source);
+    throw std::runtime_error("cannot write " + out);
+  }
+  const auto   threader = itk::MultiThreaderBase::New();
+  const size_t batch = std::max<size_t>(1, threader->GetNumberOfWorkUnits()); // chunks compressed at once
+  std::vector<std::vector<unsigned char>> raw(batch), packed(batch);
+  std::vector<int>                        status(batch);
+  std::string                             error;
+  for (bool more = true; more && error.empty();)
+  {
+    size_t n = 0; // chunks read in this batch
+    for (; n < batch; ++n)
+    {
+      raw[n].resize(chunk);
+      raw[n].resize(std::fread(raw[n].data(), 1, chunk, source));
+      if (raw[n].size() < chunk)
+      {
+        more = false;
+        if (std::ferror(source))
+        {
+          error = "cannot read " + in;
+        }
+        n += raw[n].empty() ? 0 : 1;
+        break;
+      }
+    }
+    threader->ParallelizeArray(
+      0,
+      n,
+      [&](size_t i)
+      {
+        z_stream z{};
+        status[i] = deflateInit2(&z, Z_DEFAULT_COMPRESSION, Z_DEFLATED, 15 + 16, 8, Z_DEFAULT_STRATEGY); // 16: gzip
+        if (status[i] != Z_OK)
+        {
+          return;
+        }
+        packed[i].resize(deflateBound(&z, static_cast<uLong>(raw[i].size())));
+        z.next_in = raw[i].data();
+        z.avail_in = static_cast<uInt>(raw[i].size());
+        z.next_out = packed[i].data();
+        z.avail_out = static_cast<uInt>(packed[i].size());
+        status[i] = deflate(&z, Z_FINISH) == Z_STREAM_END ? Z_OK : Z_BUF_ERROR;
+        packed[i].resize(z.total_out);
+        deflateEnd(&z);
+      },
+      nullptr);
+    for (size_t i = 0; i < n && error.empty(); ++i)
+    {
+      if (status[i] != Z_OK)
+      {
+        error = "gzip compression failed for " + out;
+      }
+      else if (std::fwrite(packed[i].data(), 1, packed[i].size(), target) != packed[i].size())
+      {
+        error = "cannot write " + out;
+      }
+    }
+  }
+  std::fclose(source);
+  if (std::fclose(target) != 0 && error.empty())
+  {
+    error = "cannot write " + out;
+  }
+  if (!error.empty())
+  {
+    std::remove(out.c_str());
+    throw std::runtime_error(error);
+  }
+}
+
+/** Writes an image (compressed where the format allows). A .nii.gz is written by ITK uncompressed into a temporary
+ * file beside it, then compressed on all work units (GzipFileParallel): ITK 5.2's NIfTI writer compresses on one
+ * thread, which took longer than the 3D GPU registration itself. */
 template <typename TImage>
 void
 WriteImage(const TImage * image, const std::string & path)
 {
-  auto writer = itk::ImageFileWriter<TImage>::New();
+  const std::string gz = ".nii.gz";
+  const bool        nifti = path.size() > gz.size() && path.compare(path.size() - gz.size(), gz.size(), gz) == 0;
+  const std::string raw = nifti ? path.substr(0, path.size() - 3) + ".uncompressed.nii" : path;
+  auto              writer = itk::ImageFileWriter<TImage>::New();
   writer->SetInput(image);
-  writer->SetFileName(path);
-  writer->UseCompressionOn();
+  writer->SetFileName(raw);
+  writer->SetUseCompression(!nifti);
   writer->Update();
+  if (nifti)
+  {
+    try
+    {
+      GzipFileParallel(raw, path);
+    }
+    catch (...)
+    {
+      std::remove(raw.c_str());
+      throw;
+    }
+    std::remove(raw.c_str());
+  }
 }
 } // namespace dmrtools
 

@@ -1,0 +1,155 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+// The tools' .nii.gz writer (dmrtools::WriteImage, dmrtools::GzipFileParallel): what ITK reads back is the image
+// written, bit for bit, with its geometry, and the file is a gzip stream of several members.
+#include "dmrToolOutput.h"
+#include "itkImage.h"
+#include "itkImageFileReader.h"
+#include "itkImageRegionIteratorWithIndex.h"
+#include "itkVector.h"
+#include "gtest/gtest.h"
+#include <cstring>
+#include <fstream>
+#include <iterator>
+#include <random>
+
+namespace
+{
+std::string
+TemporaryDirectory()
+{
+  const std::string dir =
+    itksys::SystemTools::GetCurrentWorkingDirectory() + "/dmrToolOutputGTest-" + std::to_string(::getpid());
+  itksys::SystemTools::MakeDirectory(dir);
+  return dir;
+}
+
+std::vector<unsigned char>
+ReadBytes(const std::string & path)
+{
+  std::ifstream in(path, std::ios::binary);
+  return std::vector<unsigned char>(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+/** The gzip members of a file (decompressed one after the other with zlib's inflate), and their total output. */
+size_t
+GzipMembers(const std::vector<unsigned char> & file, std::vector<unsigned char> & data)
+{
+  size_t                     members = 0, offset = 0;
+  std::vector<unsigned char> buffer(1 << 16);
+  while (offset < file.size())
+  {
+    z_stream z{};
+    EXPECT_EQ(inflateInit2(&z, 15 + 16), Z_OK);
+    z.next_in = const_cast<unsigned char *>(file.data() + offset);
+    z.avail_in = static_cast<uInt>(file.size() - offset);
+    int status = Z_OK;
+    while (status == Z_OK)
+    {
+      z.next_out = buffer.data();
+      z.avail_out = static_cast<uInt>(buffer.size());
+      status = inflate(&z, Z_NO_FLUSH);
+      data.insert(data.end(), buffer.data(), buffer.data() + (buffer.size() - z.avail_out));
+    }
+    EXPECT_EQ(status, Z_STREAM_END) << "member " << members << " at byte " << offset;
+    offset += z.total_in;
+    inflateEnd(&z);
+    if (status != Z_STREAM_END)
+    {
+      break;
+    }
+    ++members;
+  }
+  return members;
+}
+} // namespace
+
+TEST(ToolOutput, NiftiGzIsTheImageBitForBitInSeveralGzipMembers)
+{
+  using ImageType = itk::Image<itk::Vector<float, 3>, 3>;
+  auto                     image = ImageType::New();
+  ImageType::SizeType      size{ { 61, 47, 33 } }; // 1.1 MiB of voxels: two members of 1 MiB at least
+  ImageType::SpacingType   spacing;
+  ImageType::PointType     origin;
+  ImageType::DirectionType direction;
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    spacing[k] = 0.5 + 0.25 * k;
+    origin[k] = -20.0 + 7.0 * k;
+  }
+  direction.SetIdentity();
+  direction(0, 0) = 0.0;
+  direction(0, 1) = -1.0;
+  direction(1, 0) = 1.0;
+  direction(1, 1) = 0.0;
+  image->SetRegions(size);
+  image->SetSpacing(spacing);
+  image->SetOrigin(origin);
+  image->SetDirection(direction);
+  image->Allocate();
+  std::mt19937                                 rng(7);
+  std::uniform_real_distribution<float>        value(-50.0f, 50.0f);
+  itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    ImageType::PixelType v;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      v[k] = (it.GetIndex()[2] % 3 == 0) ? 0.0f : value(rng); // compressible and incompressible slices
+    }
+    it.Set(v);
+  }
+
+  const std::string dir = TemporaryDirectory();
+  const std::string path = dir + "/field.nii.gz";
+  dmrtools::WriteImage(image.GetPointer(), path);
+  EXPECT_FALSE(itksys::SystemTools::FileExists(dir + "/field.uncompressed.nii")) << "the temporary file is removed";
+
+  std::vector<unsigned char> data;
+  const auto                 file = ReadBytes(path);
+  const size_t               members = GzipMembers(file, data);
+  EXPECT_GE(members, 2u);
+  EXPECT_LT(file.size(), data.size()) << "compressed";
+  EXPECT_GT(data.size(), 61u * 47 * 33 * 12) << "the whole NIfTI file";
+
+  auto reader = itk::ImageFileReader<ImageType>::New();
+  reader->SetFileName(path);
+  ASSERT_NO_THROW(reader->Update());
+  const auto * back = reader->GetOutput();
+  EXPECT_EQ(back->GetLargestPossibleRegion().GetSize(), size);
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    EXPECT_NEAR(back->GetSpacing()[k], spacing[k], 1e-6);
+    EXPECT_NEAR(back->GetOrigin()[k], origin[k], 1e-4);
+    for (unsigned int j = 0; j < 3; ++j)
+    {
+      EXPECT_NEAR(back->GetDirection()[k][j], direction[k][j], 1e-6);
+    }
+  }
+  const size_t n = image->GetLargestPossibleRegion().GetNumberOfPixels();
+  EXPECT_EQ(std::memcmp(back->GetBufferPointer(), image->GetBufferPointer(), n * sizeof(ImageType::PixelType)), 0);
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+TEST(ToolOutput, GzipOfAnUnreadableFileThrowsAndWritesNothing)
+{
+  const std::string dir = TemporaryDirectory();
+  EXPECT_THROW(dmrtools::GzipFileParallel(dir + "/missing.nii", dir + "/out.nii.gz"), std::runtime_error);
+  EXPECT_FALSE(itksys::SystemTools::FileExists(dir + "/out.nii.gz"));
+  itksys::SystemTools::RemoveADirectory(dir);
+}
