@@ -19,6 +19,7 @@
 #include "dmrTestHelpers.h"
 #include "itkMultiThreaderBase.h"
 #include "gtest/gtest.h"
+#include <limits>
 
 #include <random>
 #include <set>
@@ -220,6 +221,31 @@ TEST(DiscreteCVT, ContractionGivesCompactConnectedCells)
   const auto reference = ComputeCellStatistics<2>(grid, density.data(), cvt.GetLabels(), 12);
   EXPECT_NEAR(cvt.GetEnergy(), reference.energy, 1e-9 * reference.energy);
   EXPECT_NEAR(cvt.BruteForceEnergy(), reference.energy, 1e-9 * reference.energy);
+}
+
+// a cell of zero mass has no centroid (the contraction's costs would be NaN): such a density is refused up front
+TEST(DiscreteCVT, DensityThatIsNotPositiveAndFiniteThrows)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 5, 4 }, std::array<double, 2>{ 1.0, 1.0 });
+  for (const float bad :
+       { 0.0f, -1.0f, std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity() })
+  {
+    std::vector<float> density(grid.numberOfPixels, 1.0f);
+    density[13] = bad;
+    itk::dmr::DiscreteCVT<2> cvt;
+    try
+    {
+      cvt.SetDensity(grid, density.data(), nullptr);
+      ADD_FAILURE() << "density " << bad << " accepted";
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      EXPECT_NE(std::string(e.GetDescription()).find("pixel 13"), std::string::npos) << e.GetDescription();
+    }
+  }
+  const std::vector<float> zeros(grid.numberOfPixels, 0.0f);
+  itk::dmr::DiscreteCVT<2> cvt;
+  EXPECT_THROW(cvt.SetDensity(grid, zeros.data(), nullptr), itk::ExceptionObject);
 }
 
 TEST(DiscreteCVT, TooManyOrZeroCellsThrow)

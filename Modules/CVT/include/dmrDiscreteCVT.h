@@ -23,6 +23,7 @@
 #include <vector>
 #include <numeric>
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 
@@ -137,10 +138,19 @@ public:
     double energyAfter{ 0 };
   };
 
-  /** Bind the grid and the density (not copied; must outlive the optimisation). */
+  /** Bind the grid and the density (not copied; must outlive the optimisation). Throws for a density that is not
+   * positive and finite everywhere: a cell of zero mass has no centroid, and the contraction's costs would be NaN. */
   void
   SetDensity(const GridType & grid, const float * density, MultiThreaderBase * threader)
   {
+    for (size_t p = 0; p < grid.numberOfPixels; ++p)
+    {
+      if (!(density[p] > 0.0f) || !std::isfinite(density[p]))
+      {
+        itkGenericExceptionMacro("DiscreteCVT: the density must be positive and finite everywhere; pixel "
+                                 << p << " has " << density[p]);
+      }
+    }
     m_Grid = grid;
     m_Density = density;
     m_Threader = threader;
