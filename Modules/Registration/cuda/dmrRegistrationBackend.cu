@@ -2127,7 +2127,7 @@ RegistrationContext::DownloadPhysicalField(const double * direction, float * hos
   return Guard(
     [&]
     {
-      const Impl &       m = *m_Impl;
+      Impl &             m = *m_Impl;
       RotationParams     r{};
       const unsigned int D = m.dimension;
       for (unsigned int i = 0; i < D; ++i)
@@ -2137,7 +2137,8 @@ RegistrationContext::DownloadPhysicalField(const double * direction, float * hos
           r.M[i][k] = direction[i * D + k];
         }
       }
-      DeviceBuffer<float> rotated(m.numberOfPixels * D);
+      // the update buffer that does not hold the previous w (RevertUpdate stays valid): no allocation
+      DeviceBuffer<float> & rotated = m.previous == &m.bufferA ? m.bufferB : m.bufferA;
       if (D == 2)
       {
         RotateKernel<2><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
