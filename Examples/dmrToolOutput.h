@@ -189,7 +189,7 @@ WriteImage(const TImage * image, const std::string & path)
 {
   const std::string gz = ".nii.gz";
   const bool        nifti = path.size() > gz.size() && path.compare(path.size() - gz.size(), gz.size(), gz) == 0;
-  const std::string raw = nifti ? path.substr(0, path.size() - 3) + ".uncompressed.nii" : path;
+  const std::string raw = nifti ? path.substr(0, path.size() - gz.size()) + ".uncompressed.nii" : path;
   auto              writer = itk::ImageFileWriter<TImage>::New();
   writer->SetInput(image);
   writer->SetFileName(raw);

@@ -118,7 +118,21 @@ TEST(ToolOutput, NiftiGzIsTheImageBitForBitInSeveralGzipMembers)
   const std::string dir = TemporaryDirectory();
   const std::string path = dir + "/field.nii.gz";
   dmrtools::WriteImage(image.GetPointer(), path);
-  EXPECT_FALSE(itksys::SystemTools::FileExists(dir + "/field.uncompressed.nii")) << "the temporary file is removed";
+  {
+    // the temporary uncompressed file is gone: the output is the folder's only file
+    itksys::Directory listing;
+    listing.Load(dir);
+    std::vector<std::string> files;
+    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+    {
+      const std::string name = listing.GetFile(i);
+      if (name != "." && name != "..")
+      {
+        files.push_back(name);
+      }
+    }
+    EXPECT_EQ(files, std::vector<std::string>{ "field.nii.gz" });
+  }
 
   std::vector<unsigned char> data;
   const auto                 file = ReadBytes(path);
