@@ -84,7 +84,7 @@ struct PhysicalBox
 };
 
 /** Physical bounding box of the centres of the voxels where mask != 0; throws when the mask is empty. */
-template<typename TMask>
+template <typename TMask>
 PhysicalBox
 MaskBoundingBox(const TMask * mask)
 {
@@ -119,7 +119,7 @@ MaskBoundingBox(const TMask * mask)
  * base (the lowest axial slice whose lung area is at least baseAreaFraction of the largest slice area: the level of
  * the diaphragm domes, above the thin costophrenic recesses) to the apex (the highest slice with at least
  * apexAreaFraction of it: above it only the trachea is left). Throws when the mask is empty. */
-template<typename TMask>
+template <typename TMask>
 PhysicalBox
 LungBoxFromMask(const TMask * mask, double baseAreaFraction = 0.5, double apexAreaFraction = 0.05)
 {
@@ -138,8 +138,7 @@ LungBoxFromMask(const TMask * mask, double baseAreaFraction = 0.5, double apexAr
   }
   const double largest = static_cast<double>(*std::max_element(area.begin(), area.end()));
   // physical z of each slice (its centre voxel), and which end is inferior
-  auto sliceZ = [&](size_t s)
-  {
+  auto sliceZ = [&](size_t s) {
     itk::ContinuousIndex<double, 3> c;
     for (unsigned int k = 0; k < 3; ++k)
     {
@@ -381,7 +380,7 @@ private:
 };
 
 /** u sampled at the voxel centres of grid: a displacement image (mm, physical frame) with grid's geometry. */
-template<typename TField = itk::Image<itk::Vector<float, 3>, 3>>
+template <typename TField = itk::Image<itk::Vector<float, 3>, 3>>
 typename TField::Pointer
 SampleDisplacementField(const BreathingDeformation & deformation, const itk::ImageBase<3> * grid)
 {
@@ -391,8 +390,7 @@ SampleDisplacementField(const BreathingDeformation & deformation, const itk::Ima
   field->Allocate();
   itk::MultiThreaderBase::New()->ParallelizeImageRegion<3>(
     field->GetLargestPossibleRegion(),
-    [&](const itk::ImageRegion<3> & region)
-    {
+    [&](const itk::ImageRegion<3> & region) {
       itk::ImageRegionIteratorWithIndex<TField> it(field, region);
       for (; !it.IsAtEnd(); ++it)
       {
@@ -413,7 +411,7 @@ SampleDisplacementField(const BreathingDeformation & deformation, const itk::Ima
 
 /** The moving image of the pair: moving(y) = fixed(y + w(y)) on the fixed grid (linear interpolation of fixed,
  * rounded when the pixel type is an integer), so that moving(x + u(x)) = fixed(x). */
-template<typename TImage>
+template <typename TImage>
 typename TImage::Pointer
 WarpWithBreathing(const TImage * fixed, const BreathingDeformation & deformation)
 {
@@ -429,8 +427,7 @@ WarpWithBreathing(const TImage * fixed, const BreathingDeformation & deformation
   std::string       error;
   itk::MultiThreaderBase::New()->ParallelizeImageRegion<3>(
     region,
-    [&](const itk::ImageRegion<3> & part)
-    {
+    [&](const itk::ImageRegion<3> & part) {
       itk::ImageRegionIteratorWithIndex<TImage> it(moving, part);
       for (; !it.IsAtEnd() && !failed; ++it)
       {
@@ -493,7 +490,7 @@ struct DisplacementFieldReport
   double        maximumSecondDifference{ 0.0 }; ///< max |u(x+h) - 2u(x) + u(x-h)| / h^2 over axes, 1/mm
 };
 
-template<typename TField>
+template <typename TField>
 DisplacementFieldReport
 AnalyzeDisplacementField(const TField * field)
 {
@@ -509,8 +506,7 @@ AnalyzeDisplacementField(const TField * field)
   std::mutex mutex;
   itk::MultiThreaderBase::New()->ParallelizeImageRegion<3>(
     region,
-    [&](const itk::ImageRegion<3> & part)
-    {
+    [&](const itk::ImageRegion<3> & part) {
       DisplacementFieldReport r;
       r.minimumJacobian = std::numeric_limits<double>::max();
       r.maximumJacobian = -std::numeric_limits<double>::max();

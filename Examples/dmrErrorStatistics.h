@@ -102,7 +102,7 @@ SummarizeErrors(std::vector<double> errors)
 
 /** True when a and b have the same size, and spacing, origin and direction agree to 1e-4 (relative to the spacing;
  * origins also to 1e-3 mm): the float precision of NIfTI headers. */
-template<unsigned int D>
+template <unsigned int D>
 bool
 SameGrid(const itk::ImageBase<D> * a, const itk::ImageBase<D> * b)
 {
@@ -131,7 +131,7 @@ SameGrid(const itk::ImageBase<D> * a, const itk::ImageBase<D> * b)
 namespace detail
 {
 /** Throws unless SameGrid(a, b). */
-template<unsigned int D>
+template <unsigned int D>
 void
 RequireSameGrid(const itk::ImageBase<D> * a, const itk::ImageBase<D> * b, const char * what)
 {
@@ -150,7 +150,7 @@ RequireSameGrid(const itk::ImageBase<D> * a, const itk::ImageBase<D> * b, const 
 namespace detail
 {
 /** errors[i] = |a(x) - b(x)| (b == nullptr: |a(x)|) over the voxels with mask(x) != 0 (all voxels without mask). */
-template<typename TFieldA, typename TFieldB, typename TMask>
+template <typename TFieldA, typename TFieldB, typename TMask>
 ErrorStatistics
 FieldDifferenceStatistics(const TFieldA * a, const TFieldB * b, const TMask * mask, const char * what)
 {
@@ -211,7 +211,7 @@ FieldDifferenceStatistics(const TFieldA * a, const TFieldB * b, const TMask * ma
 /** Dense displacement error: statistics of |u_est(x) - u_truth(x)| in mm over the voxels x where mask(x) != 0 (all
  * voxels when mask is nullptr). The fields (any itk::Vector pixel types, displacements in mm, physical frame) and
  * the mask must share one grid, the fixed image's; throws itk::ExceptionObject otherwise. */
-template<typename TEstimateField, typename TTruthField, typename TMask>
+template <typename TEstimateField, typename TTruthField, typename TMask>
 ErrorStatistics
 DisplacementErrorInMask(const TEstimateField * estimate, const TTruthField * truth, const TMask * mask)
 {
@@ -224,7 +224,7 @@ DisplacementErrorInMask(const TEstimateField * estimate, const TTruthField * tru
 
 /** Statistics of |u(x)| in mm inside the mask (nullptr: everywhere): the dense error of the zero (identity)
  * estimate, i.e. the initial error before registration. */
-template<typename TField, typename TMask>
+template <typename TField, typename TMask>
 ErrorStatistics
 DisplacementMagnitudeInMask(const TField * field, const TMask * mask)
 {

@@ -64,9 +64,9 @@ using dmrtools::UsageError;
 
 struct Options
 {
-  std::string input, outputDir;
-  double      amplitude{ 15.0 };
-  bool        forceFloat{ false };
+  std::string                  input, outputDir;
+  double                       amplitude{ 15.0 };
+  bool                         forceFloat{ false };
   std::array<unsigned long, 3> size{ { 0, 0, 0 } }; // 0: keep the input grid
 };
 
@@ -77,8 +77,7 @@ ParseArguments(int argc, char * argv[])
   for (int i = 1; i < argc; ++i)
   {
     const std::string a = argv[i];
-    auto              value = [&]() -> std::string
-    {
+    auto              value = [&]() -> std::string {
       if (i + 1 >= argc)
       {
         throw UsageError(a + " needs a value");
@@ -143,7 +142,7 @@ ParseArguments(int argc, char * argv[])
 using dmrtools::Staging;
 using dmrtools::WriteImage;
 
-template<typename TOut, typename TIn>
+template <typename TOut, typename TIn>
 typename TOut::Pointer
 CastImage(const TIn * in)
 {
@@ -165,7 +164,7 @@ CastImage(const TIn * in)
 void
 CheckInput(const std::string & path)
 {
-  unsigned int components = 1;
+  unsigned int       components = 1;
   const unsigned int d = dmrtools::ImageDimensionOf(path, &components);
   if (d != 3)
   {
@@ -199,9 +198,9 @@ Run(const Options & opt)
   if (opt.size[0] > 0)
   {
     // same physical box (outer voxel centres kept): spacing' = spacing (n - 1) / (n' - 1)
-    const auto                in = fixed->GetLargestPossibleRegion().GetSize();
-    ImageType::SizeType       outSize;
-    ImageType::SpacingType    spacing;
+    const auto             in = fixed->GetLargestPossibleRegion().GetSize();
+    ImageType::SizeType    outSize;
+    ImageType::SpacingType spacing;
     for (unsigned int k = 0; k < 3; ++k)
     {
       outSize[k] = opt.size[k];

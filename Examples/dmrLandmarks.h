@@ -51,13 +51,13 @@ enum class LandmarkUnits
   PhysicalMM      ///< ITK physical coordinates (LPS) in mm
 };
 
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 using LandmarkPointList = std::vector<itk::Point<double, VDimension>>;
 
 /** Raw values of a landmark stream, one array of D numbers per landmark. sourceName names the stream in error
  * messages. Throws itk::ExceptionObject ("<source>:<line>: ...") for a line that does not hold exactly D finite
  * numbers, and when the stream holds no landmark at all. */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 std::vector<std::array<double, VDimension>>
 ParseLandmarks(std::istream & in, const std::string & sourceName)
 {
@@ -115,7 +115,7 @@ ParseLandmarks(std::istream & in, const std::string & sourceName)
 }
 
 /** Raw values of a landmark file; throws when it cannot be opened (see ParseLandmarks for the format errors). */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 std::vector<std::array<double, VDimension>>
 ReadLandmarkValues(const std::string & path)
 {
@@ -130,7 +130,7 @@ ReadLandmarkValues(const std::string & path)
 /** Physical points (mm, ITK/LPS frame) of raw landmark values, through the geometry (origin, spacing, direction) of
  * image. With an index unit, landmarks outside the image's largest possible region (by more than half a voxel) are
  * an error, because they mean that the file does not belong to this grid. */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 LandmarkPointList<VDimension>
 LandmarksToPhysical(const std::vector<std::array<double, VDimension>> & values,
                     const itk::ImageBase<VDimension> *                  image,
@@ -172,7 +172,7 @@ LandmarksToPhysical(const std::vector<std::array<double, VDimension>> & values,
 }
 
 /** ReadLandmarkValues + LandmarksToPhysical. */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 LandmarkPointList<VDimension>
 ReadLandmarks(const std::string &                path,
               const itk::ImageBase<VDimension> * image,
@@ -182,7 +182,7 @@ ReadLandmarks(const std::string &                path,
 }
 
 /** Corresponding landmarks: fixed[i] matches moving[i]. */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 struct LandmarkPairs
 {
   LandmarkPointList<VDimension> fixed;
@@ -190,7 +190,7 @@ struct LandmarkPairs
 };
 
 /** Throws unless both lists are non-empty and of equal length. */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 void
 RequireCorrespondence(const LandmarkPointList<VDimension> & fixed,
                       const LandmarkPointList<VDimension> & moving,
@@ -209,7 +209,7 @@ RequireCorrespondence(const LandmarkPointList<VDimension> & fixed,
 
 /** Reads a fixed and a moving landmark file (each converted through its own image's geometry) and checks that they
  * correspond (same count). */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 LandmarkPairs<VDimension>
 ReadLandmarkPairs(const std::string &                fixedPath,
                   const std::string &                movingPath,
@@ -226,7 +226,7 @@ ReadLandmarkPairs(const std::string &                fixedPath,
 
 /** p + u(p) for every point: u (displacement image, any itk::Vector pixel, mm) interpolated linearly at p.
  * Throws when a point lies outside the field's grid (more than half a voxel beyond the outer voxel centres). */
-template<typename TField>
+template <typename TField>
 LandmarkPointList<TField::ImageDimension>
 MapThroughField(const LandmarkPointList<TField::ImageDimension> & points, const TField * field)
 {
@@ -259,7 +259,7 @@ MapThroughField(const LandmarkPointList<TField::ImageDimension> & points, const 
 }
 
 /** |fixed[i] + u(fixed[i]) - moving[i]| in mm, per landmark. */
-template<typename TField>
+template <typename TField>
 std::vector<double>
 LandmarkErrors(const LandmarkPointList<TField::ImageDimension> & fixed,
                const LandmarkPointList<TField::ImageDimension> & moving,
@@ -276,7 +276,7 @@ LandmarkErrors(const LandmarkPointList<TField::ImageDimension> & fixed,
 }
 
 /** |fixed[i] - moving[i]| in mm, per landmark: the errors of the identity (u = 0). */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 std::vector<double>
 InitialLandmarkErrors(const LandmarkPointList<VDimension> & fixed, const LandmarkPointList<VDimension> & moving)
 {
@@ -290,7 +290,7 @@ InitialLandmarkErrors(const LandmarkPointList<VDimension> & fixed, const Landmar
 }
 
 /** TRE summary {mean, std, p95, max} of a displacement field on the fixed grid. */
-template<typename TField>
+template <typename TField>
 ErrorStatistics
 TargetRegistrationError(const LandmarkPointList<TField::ImageDimension> & fixed,
                         const LandmarkPointList<TField::ImageDimension> & moving,
@@ -300,7 +300,7 @@ TargetRegistrationError(const LandmarkPointList<TField::ImageDimension> & fixed,
 }
 
 /** TRE summary before registration (u = 0). */
-template<unsigned int VDimension>
+template <unsigned int VDimension>
 ErrorStatistics
 InitialTargetRegistrationError(const LandmarkPointList<VDimension> & fixed,
                                const LandmarkPointList<VDimension> & moving)

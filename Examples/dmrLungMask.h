@@ -92,8 +92,7 @@ FillFromSliceBorders(const std::array<size_t, 3> & size,
   for (size_t s = 0; s < size[axis]; ++s)
   {
     const size_t base = s * stride[axis];
-    auto         seed = [&](size_t i, size_t j)
-    {
+    auto         seed = [&](size_t i, size_t j) {
       const size_t p = base + i * stride[a0] + j * stride[a1];
       if (in[p] == value && !reached[p])
       {
@@ -117,8 +116,7 @@ FillFromSliceBorders(const std::array<size_t, 3> & size,
       stack.pop_back();
       const size_t i = (p / stride[a0]) % size[a0];
       const size_t j = (p / stride[a1]) % size[a1];
-      auto         visit = [&](size_t q)
-      {
+      auto         visit = [&](size_t q) {
         if (in[q] == value && !reached[q])
         {
           reached[q] = 1;
@@ -147,7 +145,7 @@ FillFromSliceBorders(const std::array<size_t, 3> & size,
 } // namespace detail
 
 /** Lung mask (1 inside, 0 outside) of a 3D CT in HU on the CT's grid; report (optional) receives what was kept. */
-template<typename TImage>
+template <typename TImage>
 LungMaskImageType::Pointer
 LungMask(const TImage * ct, const LungMaskParameters & parameters = {}, LungMaskReport * report = nullptr)
 {

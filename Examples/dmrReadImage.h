@@ -59,7 +59,7 @@ DicomSeriesFileNames(const std::string & directory)
 
 /** The image at path: a DICOM series when path is a directory, otherwise any file ITK can read. Throws
  * itk::ExceptionObject on failure (missing path, unknown format, empty directory). */
-template<typename TImage>
+template <typename TImage>
 typename TImage::Pointer
 ReadImageOrDicomSeries(const std::string & path)
 {

@@ -139,8 +139,7 @@ GzipFileParallel(const std::string & in, const std::string & out, size_t chunk =
     threader->ParallelizeArray(
       0,
       n,
-      [&](size_t i)
-      {
+      [&](size_t i) {
         z_stream z{};
         status[i] = deflateInit2(&z, level, Z_DEFLATED, 15 + 16, 8, Z_DEFAULT_STRATEGY); // 15 + 16: gzip wrapper
         if (status[i] != Z_OK)

@@ -42,13 +42,13 @@
 #include "itksys/SystemTools.hxx"
 
 #ifdef DMR_WITH_VTK
-#  include <vtkSmartPointer.h>
-#  include <vtkPoints.h>
-#  include <vtkCellArray.h>
-#  include <vtkUnsignedCharArray.h>
-#  include <vtkPointData.h>
-#  include <vtkUnstructuredGrid.h>
-#  include <vtkXMLUnstructuredGridWriter.h>
+#include <vtkSmartPointer.h>
+#include <vtkPoints.h>
+#include <vtkCellArray.h>
+#include <vtkUnsignedCharArray.h>
+#include <vtkPointData.h>
+#include <vtkUnstructuredGrid.h>
+#include <vtkXMLUnstructuredGridWriter.h>
 #endif
 
 #include <chrono>
@@ -68,25 +68,25 @@ using dmrtools::UsageError;
 
 struct Options
 {
-  std::string  fixed, moving, outputDir, report, mesh{ "dynamic" }, backend{ "auto" };
-  long         nodes{ 0 };
-  bool         nodesGiven{ false };
-  long         iterations{ 100 };
-  long         levels{ 3 };
-  long         threads{ 0 };
-  long         saveMeshEvery{ 0 };
-  long         regularSize{ 0 };
-  long         cvtMaxSweeps{ 1000 };
-  double       cvtEpsilon{ 0.0 };
-  double       lambda{ 1.0 }, mu{ 1.0 };
-  double       energyRatio{ 0.02 }, alphaFactor{ 0.1 };
-  std::string  forceGradient{ "warped" };
-  long         stepHalvings{ 5 };
-  long         deviceSolveMinDofs{ 300 };
-  std::string  fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
-  bool         landmarksInMM{ false };
-  bool         window{ false };
-  double       windowLow{ 0.0 }, windowHigh{ 0.0 };
+  std::string fixed, moving, outputDir, report, mesh{ "dynamic" }, backend{ "auto" };
+  long        nodes{ 0 };
+  bool        nodesGiven{ false };
+  long        iterations{ 100 };
+  long        levels{ 3 };
+  long        threads{ 0 };
+  long        saveMeshEvery{ 0 };
+  long        regularSize{ 0 };
+  long        cvtMaxSweeps{ 1000 };
+  double      cvtEpsilon{ 0.0 };
+  double      lambda{ 1.0 }, mu{ 1.0 };
+  double      energyRatio{ 0.02 }, alphaFactor{ 0.1 };
+  std::string forceGradient{ "warped" };
+  long        stepHalvings{ 5 };
+  long        deviceSolveMinDofs{ 300 };
+  std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
+  bool        landmarksInMM{ false };
+  bool        window{ false };
+  double      windowLow{ 0.0 }, windowHigh{ 0.0 };
 };
 
 const char * const Usage =
@@ -389,7 +389,8 @@ double
 PeakRSSMiB()
 {
   struct rusage usage
-  {};
+  {
+  };
   getrusage(RUSAGE_SELF, &usage);
   return static_cast<double>(usage.ru_maxrss) / 1024.0; // ru_maxrss is in KiB on Linux
 }
@@ -443,7 +444,8 @@ Run(const Options & opt)
   if (movingResampled)
   {
     // a moving image on another grid is brought onto the fixed grid first (linear, outside = its minimum)
-    moving = ResampleOnto(moving.GetPointer(), fixed.GetPointer(), false, itk::dmr::IntensityRange(moving.GetPointer()).first);
+    moving =
+      ResampleOnto(moving.GetPointer(), fixed.GetPointer(), false, itk::dmr::IntensityRange(moving.GetPointer()).first);
   }
   using MaskType = typename MethodType::MaskImageType;
   typename MaskType::Pointer mask;
@@ -465,7 +467,7 @@ Run(const Options & opt)
     {
       mask = ResampleOnto(mask.GetPointer(), fixed.GetPointer(), true, 0);
     }
-    size_t inside = 0;
+    size_t          inside = 0;
     unsigned char * m = mask->GetBufferPointer();
     for (size_t p = 0, count = mask->GetBufferedRegion().GetNumberOfPixels(); p < count; ++p)
     {
@@ -563,8 +565,9 @@ Run(const Options & opt)
   method->SetAlphaFactor(opt.alphaFactor);
   method->SetMaximumStepHalvings(static_cast<unsigned int>(opt.stepHalvings));
   method->SetDeviceSolverMinimumDegreesOfFreedom(static_cast<itk::SizeValueType>(opt.deviceSolveMinDofs));
-  method->SetForceGradient(opt.forceGradient == "mapped" ? itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving
-                                                         : itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving);
+  method->SetForceGradient(opt.forceGradient == "mapped"
+                             ? itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving
+                             : itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving);
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
   method->SetMaximumNumberOfSweeps(static_cast<itk::SizeValueType>(opt.cvtMaxSweeps));
   method->SetCVTEpsilon(opt.cvtEpsilon);
@@ -626,9 +629,9 @@ Run(const Options & opt)
     meshMode = "static";
   }
 
-  dmrtools::Staging        staging(opt.outputDir);
+  dmrtools::Staging                                 staging(opt.outputDir);
   std::vector<std::pair<unsigned int, std::string>> meshFiles;
-  auto                     saveMesh = [&](unsigned int iteration) {
+  auto                                              saveMesh = [&](unsigned int iteration) {
     std::ostringstream name;
     name << "mesh_" << std::setw(4) << std::setfill('0') << iteration << ".vtu";
     WriteMeshVTU<D>(method->GetCurrentMesh(), staging.Path(name.str()));
@@ -738,9 +741,9 @@ Run(const Options & opt)
                   statisticsJson(dmrtools::DisplacementErrorInMask(field, truth.GetPointer(), mask.GetPointer())) +
                   ",\n";
   }
-  const auto & t = method->GetTiming();
-  const double ssdInitial = history.empty() ? method->GetFinalSSD() : history.front().ssd;
-  const double mssdInitial = history.empty() ? method->GetFinalMSSD() : history.front().mssd;
+  const auto &       t = method->GetTiming();
+  const double       ssdInitial = history.empty() ? method->GetFinalSSD() : history.front().ssd;
+  const double       mssdInitial = history.empty() ? method->GetFinalMSSD() : history.front().mssd;
   std::ostringstream json;
   json << std::setprecision(10) << "{\n"
        << "  \"tool\": \"itkDynamicMeshRegistration\",\n"
@@ -790,12 +793,11 @@ Run(const Options & opt)
        << "  \"mssd_final\": " << method->GetFinalMSSD() << ",\n"
        << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
-       << evaluation
-       << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
+       << evaluation << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
        << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + JsonEscape(opt.fixedMask) + "\"") << ",\n"
        << "  \"peak_rss_mb\": " << PeakRSSMiB() << ",\n"
-       << "  \"wall_time_s\": "
-       << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count() << "\n"
+       << "  \"wall_time_s\": " << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count()
+       << "\n"
        << "}\n";
   const std::string reportName = "report.json";
   {

@@ -3,7 +3,7 @@
 set -euo pipefail
 packages=(cmake g++ make ccache pkg-config
   libinsighttoolkit5-dev libvtk9-dev libcgal-dev libtet1.5-dev
-  libgtest-dev libbenchmark-dev libgdcm-tools zlib1g-dev)
+  libgtest-dev libbenchmark-dev libgdcm-tools zlib1g-dev clang-format)
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

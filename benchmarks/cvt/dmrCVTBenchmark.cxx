@@ -166,7 +166,8 @@ Report(const char *                                              what,
 /** Selects the sweep mode where the header has them (older headers have only the full scan). */
 template <typename TCVT>
 auto
-SelectSweepMode(TCVT & cvt, const std::string & mode, int) -> decltype(cvt.SetSweepMode(TCVT::SweepMode::FullScan), void())
+SelectSweepMode(TCVT & cvt, const std::string & mode, int)
+  -> decltype(cvt.SetSweepMode(TCVT::SweepMode::FullScan), void())
 {
   using ModeType = typename TCVT::SweepMode;
   cvt.SetSweepMode(mode == "full"     ? ModeType::FullScan

@@ -156,11 +156,11 @@ TEST(SwapEnergyChange, EqualsBruteForceEnergyChangeOfMovingOnePixel)
 /** Runs Optimize one sweep at a time and checks the per-sweep properties; returns the number of sweeps. */
 template <unsigned int D>
 size_t
-SweepUntilConverged(itk::dmr::DiscreteCVT<D> &    cvt,
-                    const itk::dmr::Grid<D> &     grid,
-                    const std::vector<float> &    density,
-                    size_t                        numberOfCells,
-                    size_t                        maximumSweeps)
+SweepUntilConverged(itk::dmr::DiscreteCVT<D> & cvt,
+                    const itk::dmr::Grid<D> &  grid,
+                    const std::vector<float> & density,
+                    size_t                     numberOfCells,
+                    size_t                     maximumSweeps)
 {
   size_t sweeps = 0;
   size_t lastSwaps = 1;
@@ -210,8 +210,8 @@ const std::array<double, 2> spacing2D{ 1.0, 1.7 };
 
 TEST(DiscreteCVT, ContractionGivesCompactConnectedCells)
 {
-  const itk::dmr::Grid<2> grid(size2D, spacing2D);
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
+  const itk::dmr::Grid<2>  grid(size2D, spacing2D);
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(12, 1);
@@ -279,8 +279,8 @@ TEST(DiscreteCVT, SetLabelsRejectsOutOfRangeAndEmptyCells)
 
 TEST(DiscreteCVT, SweepsNeverRaiseEnergyAndKeepCellsConnected)
 {
-  const itk::dmr::Grid<2> grid(size2D, spacing2D);
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
+  const itk::dmr::Grid<2>  grid(size2D, spacing2D);
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(12, 1);
@@ -313,8 +313,8 @@ TEST(DiscreteCVT, PeakedDensityKeepsEnergyMonotoneAndCellsConnected)
 
 TEST(DiscreteCVT, ThreeDimensionalSweepsAreMonotoneAndSixConnected)
 {
-  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 12, 10, 8 }, std::array<double, 3>{ 1.0, 1.3, 0.8 });
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 3u);
+  const itk::dmr::Grid<3>  grid(std::array<size_t, 3>{ 12, 10, 8 }, std::array<double, 3>{ 1.0, 1.3, 0.8 });
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 3u);
   itk::dmr::DiscreteCVT<3> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(6, 2);
@@ -325,8 +325,8 @@ TEST(DiscreteCVT, ThreeDimensionalSweepsAreMonotoneAndSixConnected)
 
 TEST(DiscreteCVT, ConvergedLabellingIsAFixedPoint)
 {
-  const itk::dmr::Grid<2> grid(size2D, spacing2D);
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 5u);
+  const itk::dmr::Grid<2>  grid(size2D, spacing2D);
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 5u);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(12, 1);
@@ -532,8 +532,8 @@ TEST(DiscreteCVT, ActiveListGivesTheFullScanLabelsWithThreadsAndManyChunks)
 
 TEST(DiscreteCVT, LocalRemovalTestImpliesTheCellStaysConnected)
 {
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 24, 20 }, spacing2D);
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 13u);
+  const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ 24, 20 }, spacing2D);
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 13u);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(10, 1);
@@ -564,8 +564,8 @@ TEST(DiscreteCVT, LocalRemovalTestImpliesTheCellStaysConnected)
 // _GLIBCXX_ASSERTIONS, which this executable is built with).
 TEST(DiscreteCVT, ReinitialisingWithFewerCellsStaysInBounds)
 {
-  const itk::dmr::Grid<2> grid(size2D, spacing2D);
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
+  const itk::dmr::Grid<2>  grid(size2D, spacing2D);
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 7u);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(20, 1);

@@ -156,9 +156,9 @@ TEST(DiscreteCVTFilter, SitesArePhysicalWeightedCentroids)
   ASSERT_NE(sites, nullptr);
   ASSERT_EQ(sites->GetNumberOfPoints(), 12u);
   // density-weighted mean of the physical pixel positions, computed independently of the grid frame
-  std::vector<double> mass(12, 0.0), sum(24, 0.0);
+  std::vector<double>                               mass(12, 0.0), sum(24, 0.0);
   itk::ImageRegionConstIteratorWithIndex<ImageType> it(density, density->GetLargestPossibleRegion());
-  size_t p = 0;
+  size_t                                            p = 0;
   for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++p)
   {
     ImageType::PointType x;

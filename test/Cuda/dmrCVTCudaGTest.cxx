@@ -44,7 +44,7 @@ using itk::dmr::test::LabelsAreCompact;
 
 /** A non-uniform positive density: background + Gaussian bump at `centre` + a ring (shell in 3D) around the grid
  * centre, in grid-frame mm. */
-template<unsigned int D>
+template <unsigned int D>
 std::vector<float>
 BumpAndRing(const itk::dmr::Grid<D> & grid, const std::array<double, D> & centre)
 {
@@ -95,7 +95,7 @@ Ok(const itk::dmr::cuda::Status & status)
 
 /** Labels, masses and centroids of the GPU equal the CPU's (masses/centroids: the number of values not bit-equal
  * is reported, their relative difference must stay below 1e-12). */
-template<unsigned int D>
+template <unsigned int D>
 void
 ExpectSameState(const itk::dmr::DiscreteCVT<D> & cpu, const CVTSwapOptimizer & gpu, const std::string & when)
 {
@@ -125,7 +125,7 @@ ExpectSameState(const itk::dmr::DiscreteCVT<D> & cpu, const CVTSwapOptimizer & g
 }
 
 /** The GPU energy is the brute-force energy of the GPU labels; cells are compact and face-connected. */
-template<unsigned int D>
+template <unsigned int D>
 void
 ExpectConsistentLabels(const itk::dmr::Grid<D> &  grid,
                        const std::vector<float> & density,
@@ -142,7 +142,7 @@ ExpectConsistentLabels(const itk::dmr::Grid<D> &  grid,
 
 /** Contraction on the CPU, then sweep by sweep (Optimize with one sweep, epsilon 0) on both back-ends from the same
  * state, up to `sweeps` sweeps or convergence; then a warm start with `changed` the same way. */
-template<unsigned int D>
+template <unsigned int D>
 void
 ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
                     const std::vector<float> & density,
@@ -163,8 +163,7 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
   EXPECT_EQ(gpu.NumberOfCells(), numberOfCells);
   ExpectSameState<D>(cpu, gpu, "after SetLabels");
 
-  auto run = [&](const char * phase)
-  {
+  auto run = [&](const char * phase) {
     size_t totalSwaps = 0, totalRejected = 0;
     for (size_t s = 0; s < sweeps && !::testing::Test::HasFailure(); ++s)
     {
@@ -370,8 +369,9 @@ TEST(CVTCuda, BenchmarkWarmStart256x256x132)
     GTEST_SKIP() << "set DMR_CVT_BENCHMARK=1 to run";
   }
   using Clock = std::chrono::steady_clock;
-  auto ms = [](Clock::time_point a, Clock::time_point b)
-  { return std::chrono::duration<double, std::milli>(b - a).count(); };
+  auto ms = [](Clock::time_point a, Clock::time_point b) {
+    return std::chrono::duration<double, std::milli>(b - a).count();
+  };
   const itk::dmr::Grid<3>  grid(std::array<size_t, 3>{ 256, 256, 132 }, std::array<double, 3>{ 1.0, 1.0, 2.0 });
   const auto               density = BumpAndRing<3>(grid, { 100.0, 120.0, 130.0 });
   const auto               changed = BumpAndRing<3>(grid, { 101.0, 121.0, 131.0 });

@@ -31,7 +31,7 @@ using itk::dmr::Grid;
 using itk::dmr::LabelSummary;
 using itk::dmr::test::SameSummary;
 
-template<unsigned int D>
+template <unsigned int D>
 Grid<D>
 MakeGrid(std::array<size_t, D> size)
 {
@@ -41,7 +41,7 @@ MakeGrid(std::array<size_t, D> size)
 }
 
 /** GPU summary (through the given summarizer, or the shared one) of host labels against the CPU summary. */
-template<unsigned int D>
+template <unsigned int D>
 ::testing::AssertionResult
 GpuSummaryIsTheCpuSummary(const Grid<D> &                   grid,
                           const std::vector<int32_t> &      labels,
@@ -60,7 +60,7 @@ GpuSummaryIsTheCpuSummary(const Grid<D> &                   grid,
   return SameSummary(gpu, cpu);
 }
 
-template<typename TPhantom>
+template <typename TPhantom>
 std::vector<int32_t>
 PhantomLabels(const TPhantom & phantom)
 {

@@ -35,8 +35,8 @@ using MethodOf = itk::FEMRegistrationMethod<ImageOf<D>, ImageOf<D>>;
 using MeshMode = itk::DynamicMeshRegistrationEnums::MeshMode;
 using Backend = itk::DynamicMeshRegistrationEnums::Backend;
 
-#define DMR_REQUIRE_DEVICE()                                                                                          \
-  if (!itk::dmr::cuda::DeviceAvailable())                                                                             \
+#define DMR_REQUIRE_DEVICE()                                                                                           \
+  if (!itk::dmr::cuda::DeviceAvailable())                                                                              \
   GTEST_SKIP() << "no CUDA device: " << itk::dmr::cuda::UnavailableReason()
 
 /** Smooth ellipsoidal blob with a little texture; rotated direction, anisotropic spacing and an origin away from 0
@@ -46,10 +46,10 @@ typename ImageOf<D>::Pointer
 Blob(unsigned int n, const double * centre, const double * radii)
 {
   using ImageType = ImageOf<D>;
-  auto                        image = ImageType::New();
-  typename ImageType::SizeType size;
+  auto                            image = ImageType::New();
+  typename ImageType::SizeType    size;
   typename ImageType::SpacingType spacing;
-  typename ImageType::PointType origin;
+  typename ImageType::PointType   origin;
   for (unsigned int k = 0; k < D; ++k)
   {
     size[k] = n - 4 * k;
@@ -86,8 +86,12 @@ Blob(unsigned int n, const double * centre, const double * radii)
 
 template <unsigned int D>
 typename MethodOf<D>::Pointer
-Registration(Backend backend, MeshMode mode, unsigned int nodes, unsigned int iterations, unsigned int n,
-             double energyRatio = 0.1)
+Registration(Backend      backend,
+             MeshMode     mode,
+             unsigned int nodes,
+             unsigned int iterations,
+             unsigned int n,
+             double       energyRatio = 0.1)
 {
   const double cf[3] = { 0.45 * n, 0.5 * n, 0.45 * n }, rf[3] = { 0.3 * n, 0.22 * n, 0.25 * n };
   const double cm[3] = { 0.52 * n, 0.47 * n, 0.5 * n }, rm[3] = { 0.24 * n, 0.25 * n, 0.2 * n };
@@ -174,8 +178,8 @@ RunsAgree(MeshMode     mode,
     EXPECT_EQ(gpu->GetHistory()[i].nodes, cpu->GetHistory()[i].nodes) << "iteration " << i + 1;
     EXPECT_NEAR(gpu->GetHistory()[i].mssd, cpu->GetHistory()[i].mssd, 1e-6 * cpu->GetHistory()[i].mssd);
     EXPECT_EQ(gpu->GetHistory()[i].stepScale, cpu->GetHistory()[i].stepScale) << "iteration " << i + 1;
-    EXPECT_NEAR(gpu->GetHistory()[i].elastic, cpu->GetHistory()[i].elastic,
-                1e-6 * std::abs(cpu->GetHistory()[i].elastic) + 1e-12)
+    EXPECT_NEAR(
+      gpu->GetHistory()[i].elastic, cpu->GetHistory()[i].elastic, 1e-6 * std::abs(cpu->GetHistory()[i].elastic) + 1e-12)
       << "iteration " << i + 1;
   }
   size_t halved = 0;
@@ -209,8 +213,8 @@ template <unsigned int D>
 void
 ElasticSolveAgrees(itk::dmr::cuda::RegistrationContext & context, const itk::dmr::SimplexMesh<D> & mesh)
 {
-  const double lambda = 0.7, mu = 1.3;
-  const size_t ndof = mesh.NumberOfNodes() * D;
+  const double        lambda = 0.7, mu = 1.3;
+  const size_t        ndof = mesh.NumberOfNodes() * D;
   std::vector<double> f(ndof), uGpu(ndof, 7.0), uCpu;
   for (size_t i = 0; i < ndof; ++i)
   {
@@ -251,7 +255,8 @@ ElasticSolveAgrees(itk::dmr::cuda::RegistrationContext & context, const itk::dmr
   EXPECT_GT(largest, 0.0);
   EXPECT_LE(largestDiff, 1e-8 * largest);
   // the same algorithm and stopping rule: Eigen counts the products before the converging one
-  EXPECT_NEAR(static_cast<double>(iterations), static_cast<double>(solver->GetLastIterations() + 1),
+  EXPECT_NEAR(static_cast<double>(iterations),
+              static_cast<double>(solver->GetLastIterations() + 1),
               std::max(3.0, 0.1 * static_cast<double>(solver->GetLastIterations())));
 
   // the one-launch (cooperative) CG loop and the separate launches take the same products: the same iterate, bit for
@@ -304,7 +309,8 @@ StagesAgree(unsigned int nodes, unsigned int n)
   const auto * fixed = cpu->GetFixedImage();
   const auto   grid = itk::dmr::Grid<D>::FromImage(fixed);
 
-  using DensityFilter = itk::DensityFieldFilter<ImageOf<D>, ImageOf<D>, itk::Image<itk::Vector<float, D>, D>, ImageOf<D>>;
+  using DensityFilter =
+    itk::DensityFieldFilter<ImageOf<D>, ImageOf<D>, itk::Image<itk::Vector<float, D>, D>, ImageOf<D>>;
   auto density = DensityFilter::New();
   density->SetFixedImage(fixed);
   density->SetMovingImage(cpu->GetMovingImage());
@@ -332,8 +338,12 @@ StagesAgree(unsigned int nodes, unsigned int n)
   // owner of every pixel: identical to the CPU rasterisation
   const auto raster = itk::dmr::MeshRasterData<D>(grid, mesh, nullptr);
   ASSERT_TRUE(context
-                .SetMesh(mesh.nodes.data(), mesh.NumberOfNodes(), raster.elements.data(), mesh.elements.size(),
-                         raster.affine.data(), raster.bounds.data())
+                .SetMesh(mesh.nodes.data(),
+                         mesh.NumberOfNodes(),
+                         raster.elements.data(),
+                         mesh.elements.size(),
+                         raster.affine.data(),
+                         raster.bounds.data())
                 .Ok());
   itk::dmr::BarycentricMap<D> bary;
   bary.Build(grid, mesh, nullptr);
@@ -417,8 +427,12 @@ StagesAgree(unsigned int nodes, unsigned int n)
   // a mesh that does not cover the image is refused with a message, not a crash
   auto partial = mesh;
   partial.elements.resize(partial.elements.size() / 2);
-  const auto status = context.SetMesh(partial.nodes.data(), partial.NumberOfNodes(), raster.elements.data(),
-                                      partial.elements.size(), raster.affine.data(), raster.bounds.data());
+  const auto status = context.SetMesh(partial.nodes.data(),
+                                      partial.NumberOfNodes(),
+                                      raster.elements.data(),
+                                      partial.elements.size(),
+                                      raster.affine.data(),
+                                      raster.bounds.data());
   EXPECT_FALSE(status.Ok());
   EXPECT_NE(status.message.find("not covered"), std::string::npos) << status.message;
 
@@ -487,7 +501,7 @@ StagesAgree(unsigned int nodes, unsigned int n)
  * fixed and moving image (dmr::GaussianShrink) and moving gradient (GradientInto). A moving image of another size and
  * direction than the fixed image (R is a real rotation), anisotropic spacing, odd sizes, and `thin` pixels along the
  * last axis (no shrink there, one-sided differences; a level of one pixel when thin is 1). */
-template<unsigned int D>
+template <unsigned int D>
 void
 DevicePyramidEqualsCPU(unsigned int n, unsigned int thin)
 {
@@ -542,8 +556,7 @@ DevicePyramidEqualsCPU(unsigned int n, unsigned int thin)
   const auto & pyramid = density->GetPyramid(true); // rebuilt, complete, on the CPU
   EXPECT_GT(std::abs(pyramid[0].R[0][1]), 0.5) << "the moving and fixed grid frames should differ";
   EXPECT_LT(pyramid[2].movingGrid.numberOfPixels, pyramid[0].movingGrid.numberOfPixels / (thin > 0 ? 2 : 8));
-  auto countDifferent = [](const std::vector<float> & cpu, const std::vector<float> & gpu)
-  {
+  auto countDifferent = [](const std::vector<float> & cpu, const std::vector<float> & gpu) {
     size_t differ = 0;
     for (size_t i = 0; i < cpu.size(); ++i)
     {

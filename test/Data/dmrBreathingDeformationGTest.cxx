@@ -70,7 +70,7 @@ SmoothIntensity(const itk::Point<double, 3> & x)
   return v;
 }
 
-template<typename TImage>
+template <typename TImage>
 void
 FillWith(TImage * image, double (*f)(const itk::Point<double, 3> &))
 {

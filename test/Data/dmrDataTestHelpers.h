@@ -54,7 +54,7 @@ SharedDataFolder(const std::string & name)
 }
 
 /** itk::Vector / itk::Point from three numbers (ITK 5.2 has no MakeVector/MakePoint). */
-template<typename T = double>
+template <typename T = double>
 itk::Vector<T, 3>
 Vec(T a, T b, T c)
 {
@@ -118,7 +118,7 @@ ObliqueDirection(double aboutX = 0.15, double aboutZ = 0.1)
 }
 
 /** An empty image with the given geometry; centre of the physical box at centre. */
-template<typename TImage>
+template <typename TImage>
 typename TImage::Pointer
 MakeImage(const itk::Size<3> &              size,
           const itk::Vector<double, 3> &    spacing,

@@ -74,7 +74,7 @@ RunTool(const std::string & arguments, const std::string & scratch)
   return r;
 }
 
-template<typename TImage>
+template <typename TImage>
 typename TImage::Pointer
 Read(const std::string & path)
 {
@@ -84,7 +84,7 @@ Read(const std::string & path)
   return reader->GetOutput();
 }
 
-template<typename TImage>
+template <typename TImage>
 void
 Write(const TImage * image, const std::string & path)
 {
@@ -207,8 +207,7 @@ TEST(GenerateBreathingTool, WritesAConsistentPair)
   EXPECT_NEAR(static_cast<double>(inside.count) * 4.0 * 4.0 * 6.0, lungVolume, 0.15 * lungVolume); // blurred
   // direction: resampling moving through x -> x + u(x) gives back fixed (up to two linear interpolations), through
   // x -> x - u(x) it does not
-  auto resampled = [&](double sign)
-  {
+  auto resampled = [&](double sign) {
     auto negated = FieldType::New();
     negated->CopyInformation(truth);
     negated->SetRegions(truth->GetLargestPossibleRegion());

@@ -30,7 +30,7 @@ using FieldType = itk::Image<itk::Vector<float, 3>, 3>;
 using GeometryType = itk::Image<unsigned char, 3>;
 
 /** The message of the itk::ExceptionObject thrown by f, or "" when nothing was thrown. */
-template<typename F>
+template <typename F>
 std::string
 ErrorOf(F && f)
 {
@@ -173,10 +173,9 @@ TEST(Landmarks, PhysicalConversionWithObliqueDirection)
   // distances are preserved by the direction: |p(2,3,4) - p(1,1,1)| = |(1,2,3) * spacing|
   EXPECT_NEAR(one[1].EuclideanDistanceTo(one[0]), std::sqrt(0.36 + 4 * 0.36 + 9 * 6.25), 1e-9);
   // an index past the grid means the file belongs to another image
-  const std::string e = ErrorOf(
-    [&] {
-      dmrtools::LandmarksToPhysical<3>({ { 1, 1, 22 } }, grid, dmrtools::LandmarkUnits::OneBasedIndex);
-    });
+  const std::string e = ErrorOf([&] {
+    dmrtools::LandmarksToPhysical<3>({ { 1, 1, 22 } }, grid, dmrtools::LandmarkUnits::OneBasedIndex);
+  });
   EXPECT_NE(e.find("landmark 1 lies outside the image grid"), std::string::npos) << e;
 }
 
@@ -206,8 +205,7 @@ TEST(Landmarks, SyntheticFieldGivesKnownTRE)
     { { 30, 28, 16 } }, dmrtest::Vec(0.6, 0.6, 2.5), dmrtest::ObliqueDirection(0.4, -0.3), dmrtest::Pt(5.0, 5.0, 5.0));
   const double A[3][3] = { { 0.02, -0.01, 0.0 }, { 0.005, 0.03, -0.01 }, { 0.0, 0.01, -0.02 } };
   const double b[3] = { 3.0, -4.0, 1.5 };
-  auto         u = [&](const itk::Point<double, 3> & x)
-  {
+  auto         u = [&](const itk::Point<double, 3> & x) {
     itk::Vector<double, 3> v;
     for (unsigned int r = 0; r < 3; ++r)
     {

@@ -83,7 +83,8 @@ TEST(DensityFieldFilter, BasicObjectMethodsPrintAndSetGet)
   auto filter = FilterType::New();
   EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(filter.GetPointer(), "DensityFieldFilter", "ImageToImageFilter"));
   EXPECT_TRUE(itk::dmr::test::PrintMentions(
-    filter.GetPointer(), { "NumberOfLevels", "AlphaFactor", "UseFixedAlpha", "Alpha", "MSSD", "SSD", "MeanSquaredForce", "ForceGradient" }));
+    filter.GetPointer(),
+    { "NumberOfLevels", "AlphaFactor", "UseFixedAlpha", "Alpha", "MSSD", "SSD", "MeanSquaredForce", "ForceGradient" }));
   DMR_EXPECT_SET_GET(filter, NumberOfLevels, 2u);
   EXPECT_EQ(filter->GetForceGradient(), FilterType::ForceGradientEnum::WarpedMoving);
   DMR_EXPECT_SET_GET(filter, ForceGradient, FilterType::ForceGradientEnum::MappedMoving);
@@ -110,7 +111,9 @@ TEST(DensityFieldFilter, BasicObjectMethodsPrintAndSetGet)
 
 TEST(DensityFieldFilter, BadInputThrows)
 {
-  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } }, Spacing(1, 1), Origin(0, 0),
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } },
+                                                    Spacing(1, 1),
+                                                    Origin(0, 0),
                                                     itk::dmr::test::RotationDirection2D<ImageType>(0.0),
                                                     Blob(Origin(10, 8)));
   {
@@ -124,7 +127,9 @@ TEST(DensityFieldFilter, BadInputThrows)
     EXPECT_THROW(filter->Update(), itk::ExceptionObject);
   }
   {
-    auto thin = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 1 } }, Spacing(1, 1), Origin(0, 0),
+    auto thin = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 1 } },
+                                                     Spacing(1, 1),
+                                                     Origin(0, 0),
                                                      itk::dmr::test::RotationDirection2D<ImageType>(0.0),
                                                      Blob(Origin(10, 0)));
     auto filter = FilterType::New();
@@ -142,8 +147,10 @@ TEST(DensityFieldFilter, BadInputThrows)
 void
 CheckIdenticalImages(double angle, double relativeTolerance)
 {
-  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 40, 32 } }, Spacing(1.0, 1.2),
-                                                    Origin(-5, 3), itk::dmr::test::RotationDirection2D<ImageType>(angle),
+  auto   image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 40, 32 } },
+                                                    Spacing(1.0, 1.2),
+                                                    Origin(-5, 3),
+                                                    itk::dmr::test::RotationDirection2D<ImageType>(angle),
                                                     Blob(Origin(8, 20)));
   double energy = 0.0; // sum T^2: the scale of the SSD
   for (size_t p = 0; p < 40 * 32; ++p)
@@ -165,7 +172,8 @@ CheckIdenticalImages(double angle, double relativeTolerance)
   for (size_t p = 0; p < n; ++p)
   {
     ASSERT_EQ(density->GetBufferPointer()[p], static_cast<float>(filter->GetAlpha())) << "pixel " << p;
-    ASSERT_LE(filter->GetForceField()->GetBufferPointer()[p].GetSquaredNorm(), relativeTolerance * energy) << "pixel " << p;
+    ASSERT_LE(filter->GetForceField()->GetBufferPointer()[p].GetSquaredNorm(), relativeTolerance * energy)
+      << "pixel " << p;
   }
 }
 
@@ -182,7 +190,9 @@ TEST(DensityFieldFilter, IdenticalImagesGiveZeroMSSDAndConstantPositiveDensity)
 // zero everywhere although the class promises it is never all zero (DiscreteCVTFilter then throws).
 TEST(DensityFieldFilter, IdenticalConstantImagesGiveAPositiveDensity)
 {
-  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } }, Spacing(1, 1), Origin(0, 0),
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } },
+                                                    Spacing(1, 1),
+                                                    Origin(0, 0),
                                                     itk::dmr::test::RotationDirection2D<ImageType>(0.0),
                                                     [](const ImageType::PointType &) { return 5.0f; });
   auto filter = FilterType::New();
@@ -248,14 +258,16 @@ TEST(DensityFieldFilter, PhysicalForceFollowsARotatedImage)
   const double              ex = std::cos(angle), ey = std::sin(angle);
   const ImageType::SizeType size{ { 48, 40 } };
   const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(angle + 0.2);
-  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(12, ex, ey));
-  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(9, ex, ey));
+  auto                      fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(12, ex, ey));
+  auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1.0, 1.1), Origin(-10, -15), direction, Edge(9, ex, ey));
   auto filter = FilterType::New();
   filter->SetFixedImage(fixed);
   filter->SetMovingImage(moving);
   filter->Update();
-  const auto * force = filter->GetForceField();
-  size_t       checked = 0;
+  const auto *                                      force = filter->GetForceField();
+  size_t                                            checked = 0;
   itk::ImageRegionConstIteratorWithIndex<FieldType> it(force, force->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
   {
@@ -285,8 +297,9 @@ TEST(DensityFieldFilter, DisplacementThatUndoesATranslationGivesZeroSSD)
   const auto                spacing = Spacing(0.9, 1.2);
   const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(0.6);
   const auto                origin = Origin(4, -9);
-  auto                      fixed = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, [&](const ImageType::PointType &) { return 0.0f; });
-  ImageType::PointType      centre;
+  auto                      fixed = itk::dmr::test::MakeImage<ImageType>(
+    size, spacing, origin, direction, [&](const ImageType::PointType &) { return 0.0f; });
+  ImageType::PointType centre;
   fixed->TransformIndexToPhysicalPoint({ { 22, 20 } }, centre);
   fixed = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, Blob(centre));
   itk::Vector<double, 2> indexShift;
@@ -337,17 +350,19 @@ TEST(DensityFieldFilter, WarpedGradientForceIsTheDerivativeOfTheSSDForTheComposi
   const auto                spacing = Spacing(0.9, 1.2);
   const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(0.4);
   const auto                origin = Origin(-7, 5);
-  auto shape = [](const ImageType::PointType & c, double sigma) {
+  auto                      shape = [](const ImageType::PointType & c, double sigma) {
     return [c, sigma](const ImageType::PointType & p) {
       const double r2 = (p[0] - c[0]) * (p[0] - c[0]) + 0.6 * (p[1] - c[1]) * (p[1] - c[1]);
       return static_cast<float>(100.0 * std::exp(-r2 / (2.0 * sigma * sigma)));
     };
   };
-  auto                 probe = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, [](const ImageType::PointType &) { return 0.0f; });
+  auto probe = itk::dmr::test::MakeImage<ImageType>(
+    size, spacing, origin, direction, [](const ImageType::PointType &) { return 0.0f; });
   ImageType::PointType centre;
   probe->TransformIndexToPhysicalPoint({ { 48, 44 } }, centre);
   auto fixed = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, shape(centre, 11.0));
-  auto moving = itk::dmr::test::MakeImage<ImageType>(size, spacing, origin, direction, shape(centre + itk::Vector<double, 2>(4.0), 9.0));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(
+    size, spacing, origin, direction, shape(centre + itk::Vector<double, 2>(4.0), 9.0));
 
   // W(x) = x + u(x), u a smooth swirl; the perturbation direction v(x) another smooth field (both physical, mm)
   auto u = [&](const ImageType::PointType & p) {
@@ -448,7 +463,7 @@ ForceWithSpacing(double sx, double sy, unsigned int levels)
   filter->SetMovingImage(moving);
   filter->SetNumberOfLevels(levels);
   filter->Update();
-  const auto * f = filter->GetForceField()->GetBufferPointer();
+  const auto *       f = filter->GetForceField()->GetBufferPointer();
   std::vector<float> out;
   for (size_t p = 0; p < size[0] * size[1]; ++p)
   {
@@ -479,7 +494,8 @@ TEST(DensityFieldFilter, ForceIsPerMillimetre)
       EXPECT_NEAR(twice[i + 1], 0.5f * unit[i + 1], 1e-5f * maxForce) << "levels " << levels << " component " << i;
       // per axis: only the y component halves when only the y spacing doubles
       EXPECT_NEAR(anisotropic[i], unit[i], 1e-5f * maxForce) << "levels " << levels << " component " << i;
-      EXPECT_NEAR(anisotropic[i + 1], 0.5f * unit[i + 1], 1e-5f * maxForce) << "levels " << levels << " component " << i;
+      EXPECT_NEAR(anisotropic[i + 1], 0.5f * unit[i + 1], 1e-5f * maxForce)
+        << "levels " << levels << " component " << i;
     }
   }
 }
@@ -488,8 +504,10 @@ TEST(DensityFieldFilter, DensityIsSquaredForcePlusAlpha)
 {
   const ImageType::SizeType size{ { 40, 32 } };
   const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  auto                      fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
   auto filter = FilterType::New();
   filter->SetFixedImage(fixed);
   filter->SetMovingImage(moving);
@@ -552,8 +570,10 @@ TEST(DensityFieldFilter, FixedMaskRestrictsForceDensityAndSimilarity)
 {
   const ImageType::SizeType size{ { 40, 32 } };
   const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto fixed = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving = itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  auto                      fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
   using MaskType = FilterType::MaskImageType;
   auto mask = MaskType::New();
   mask->CopyInformation(fixed);
@@ -626,7 +646,7 @@ void
 GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
 {
   using Img = itk::Image<float, D>;
-  auto image = Img::New();
+  auto                     image = Img::New();
   typename Img::RegionType region;
   typename Img::IndexType  start;
   for (unsigned int k = 0; k < D; ++k)

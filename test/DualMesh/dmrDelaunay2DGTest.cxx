@@ -83,9 +83,9 @@ TEST(ConstrainedDelaunay2D, CrossingConstraintIsSkippedAndTheFirstIsKept)
   const std::vector<double> xy{ 0, 0, 1, 0, 1, 1.0001, 0, 1 };
   for (int first = 0; first < 2; ++first)
   {
-    const std::array<int32_t, 2>              d02{ 0, 2 }, d13{ 1, 3 };
-    std::vector<std::array<int32_t, 2>>       constraints = first == 0 ? std::vector<std::array<int32_t, 2>>{ d02, d13 }
-                                                                        : std::vector<std::array<int32_t, 2>>{ d13, d02 };
+    const std::array<int32_t, 2>        d02{ 0, 2 }, d13{ 1, 3 };
+    std::vector<std::array<int32_t, 2>> constraints =
+      first == 0 ? std::vector<std::array<int32_t, 2>>{ d02, d13 } : std::vector<std::array<int32_t, 2>>{ d13, d02 };
     TriangleList triangles;
     EXPECT_EQ(itk::dmr::ConstrainedDelaunay2D(xy, constraints, triangles), 1u);
     ASSERT_EQ(triangles.size(), 2u);
@@ -121,8 +121,10 @@ TEST(ConstrainedDelaunay2D, RandomPointsGiveAnEmptyCircumcircleTriangulationOfTh
     const double ax = xy[2 * t[0]], ay = xy[2 * t[0] + 1], bx = xy[2 * t[1]], by = xy[2 * t[1] + 1];
     const double cx = xy[2 * t[2]], cy = xy[2 * t[2] + 1];
     const double d = 2.0 * (ax * (by - cy) + bx * (cy - ay) + cx * (ay - by));
-    const double ox = ((ax * ax + ay * ay) * (by - cy) + (bx * bx + by * by) * (cy - ay) + (cx * cx + cy * cy) * (ay - by)) / d;
-    const double oy = ((ax * ax + ay * ay) * (cx - bx) + (bx * bx + by * by) * (ax - cx) + (cx * cx + cy * cy) * (bx - ax)) / d;
+    const double ox =
+      ((ax * ax + ay * ay) * (by - cy) + (bx * bx + by * by) * (cy - ay) + (cx * cx + cy * cy) * (ay - by)) / d;
+    const double oy =
+      ((ax * ax + ay * ay) * (cx - bx) + (bx * bx + by * by) * (ax - cx) + (cx * cx + cy * cy) * (bx - ax)) / d;
     const double r2 = (ax - ox) * (ax - ox) + (ay - oy) * (ay - oy);
     for (size_t i = 0; i < n; ++i)
     {

@@ -157,8 +157,7 @@ TEST(Delaunay3D, IsEmptyCircumsphere)
                    mc[0][2] * (mc[1][0] * mc[2][1] - mc[1][1] * mc[2][0])) /
                   det;
     }
-    auto distance2 = [&](size_t i)
-    {
+    auto distance2 = [&](size_t i) {
       double s = 0.0;
       for (unsigned int k = 0; k < 3; ++k)
       {

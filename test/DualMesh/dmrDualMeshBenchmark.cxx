@@ -69,8 +69,7 @@ VoronoiLabels(const LabelImageType::SizeType & size, const LabelImageType::Spaci
     nb[k] = std::max<long>(1, static_cast<long>(std::ceil(size[k] * spacing[k] / h)));
   }
   std::vector<std::vector<int32_t>> bucket(nb[0] * nb[1] * nb[2]);
-  auto                              bucketOf = [&](const std::array<long, 3> & v, long(&b)[3])
-  {
+  auto                              bucketOf = [&](const std::array<long, 3> & v, long(&b)[3]) {
     for (unsigned int k = 0; k < 3; ++k)
     {
       b[k] = std::min<long>(nb[k] - 1, static_cast<long>(v[k] * spacing[k] / h));

@@ -38,7 +38,7 @@ Threader(unsigned int workUnits)
 }
 
 /** CPU summary against the brute-force definition, serial, with one work unit and with several. */
-template<unsigned int D>
+template <unsigned int D>
 ::testing::AssertionResult
 SummaryIsTheDefinition(const Grid<D> & grid, const std::vector<int32_t> & labels, size_t nCells)
 {
@@ -56,7 +56,7 @@ SummaryIsTheDefinition(const Grid<D> & grid, const std::vector<int32_t> & labels
   return ::testing::AssertionSuccess();
 }
 
-template<unsigned int D>
+template <unsigned int D>
 Grid<D>
 MakeGrid(std::array<size_t, D> size)
 {
@@ -125,7 +125,7 @@ TEST(LabelSummary, LabelOutsideTheCellRangeThrows)
 }
 
 /** The sites of a phantom's CVT in the grid frame, as the filter converts them. */
-template<typename TPhantom>
+template <typename TPhantom>
 std::vector<double>
 SitesInTheGridFrame(const TPhantom & phantom)
 {
@@ -147,7 +147,7 @@ SitesInTheGridFrame(const TPhantom & phantom)
 }
 
 /** The summary-based builder gives exactly the filter's mesh and statistics. */
-template<typename TPhantom>
+template <typename TPhantom>
 void
 ExpectBuilderGivesTheFilterMesh(const TPhantom & phantom, bool withSites, bool snapToBoxEdges)
 {
@@ -222,7 +222,8 @@ namespace
 /** The definition: the pairs whose two nodes are not both vertices of one element. */
 template <size_t V>
 size_t
-BruteForceMissingEdges(const std::vector<std::array<int32_t, 2>> & pairs, const std::vector<std::array<int32_t, V>> & elements)
+BruteForceMissingEdges(const std::vector<std::array<int32_t, 2>> & pairs,
+                       const std::vector<std::array<int32_t, V>> & elements)
 {
   size_t missing = 0;
   for (const auto & p : pairs)
@@ -262,8 +263,8 @@ MissingEdgesMatchTheDefinition(unsigned int seed)
   {
     pairs.push_back({ node(random), node(random) }); // any order, self pairs included
   }
-  pairs.push_back({ 3, nNodes + 5 });                // a node no element has
-  std::sort(pairs.begin(), pairs.begin() + 200);     // a grouped run, then an ungrouped one
+  pairs.push_back({ 3, nNodes + 5 });            // a node no element has
+  std::sort(pairs.begin(), pairs.begin() + 200); // a grouped run, then an ungrouped one
   const size_t expected = BruteForceMissingEdges(pairs, elements);
   EXPECT_GT(expected, 0u);
   EXPECT_LT(expected, pairs.size());

@@ -581,14 +581,14 @@ TEST(DualMeshFilter3D, TinyImageWithEightCells)
   spacing[2] = 2.0;
   ImageType::PointType origin;
   origin.Fill(4.0);
-  DualMeshPhantom3D phantom(itk::dmr::test::RidgeDensity3D(ImageType::SizeType{ { 5, 5, 5 } },
-                                                            spacing,
-                                                            origin,
-                                                            itk::dmr::test::RotationDirection3D<ImageType>(
-                                                              { 0.0, 0.0, 1.0 }, 0.4)),
-                            8);
-  const auto        grid = phantom.GetGrid();
-  const auto &      mesh = phantom.GetMesh();
+  DualMeshPhantom3D phantom(
+    itk::dmr::test::RidgeDensity3D(ImageType::SizeType{ { 5, 5, 5 } },
+                                   spacing,
+                                   origin,
+                                   itk::dmr::test::RotationDirection3D<ImageType>({ 0.0, 0.0, 1.0 }, 0.4)),
+    8);
+  const auto   grid = phantom.GetGrid();
+  const auto & mesh = phantom.GetMesh();
   EXPECT_TRUE(IsValidDualMesh(grid, mesh));
   EXPECT_TRUE(IsConforming(grid, mesh));
   size_t strictlyInside = 0;
@@ -616,9 +616,9 @@ TEST(DualMeshFilter3D, OneCellGivesTheEightCorners)
 TEST(DualMeshFilter3D, SmallAndDegenerateInputs)
 {
   // 2 x 2 x 2 voxels, one cell each: only corners
-  auto eight =
-    MakeLabels(LabelImageType::SizeType{ { 2, 2, 2 } },
-               [](const LabelImageType::IndexType & i) { return static_cast<int32_t>(i[0] + 2 * i[1] + 4 * i[2]); });
+  auto eight = MakeLabels(LabelImageType::SizeType{ { 2, 2, 2 } }, [](const LabelImageType::IndexType & i) {
+    return static_cast<int32_t>(i[0] + 2 * i[1] + 4 * i[2]);
+  });
   auto filter = FilterType::New();
   filter->SetInput(eight);
   ASSERT_NO_THROW(filter->Update());
@@ -634,10 +634,9 @@ TEST(DualMeshFilter3D, SmallAndDegenerateInputs)
   EXPECT_TRUE(IsValidDualMesh(Grid3D::FromImage(slabs.GetPointer()), filter->GetSimplexMesh()));
 
   // one inner cell inside one outer cell (a cube in a cube): corners plus one inner node
-  auto nested =
-    MakeLabels(LabelImageType::SizeType{ { 6, 6, 6 } },
-               [](const LabelImageType::IndexType & i)
-               { return static_cast<int32_t>(i[0] > 0 && i[0] < 5 && i[1] > 0 && i[1] < 5 && i[2] > 0 && i[2] < 5); });
+  auto nested = MakeLabels(LabelImageType::SizeType{ { 6, 6, 6 } }, [](const LabelImageType::IndexType & i) {
+    return static_cast<int32_t>(i[0] > 0 && i[0] < 5 && i[1] > 0 && i[1] < 5 && i[2] > 0 && i[2] < 5);
+  });
   filter->SetInput(nested);
   ASSERT_NO_THROW(filter->Update());
   EXPECT_EQ(filter->GetSimplexMesh().NumberOfNodes(), 9u);
@@ -659,9 +658,9 @@ TEST(DualMeshFilter3D, SymmetricCellsAreNudgedOffFlatTetrahedra)
   // 4 x 4 x 4 equal blocks: the inner block centres form a lattice, 8 at a time on a sphere and 4 at a time on a
   // circle. Sites off the lattice by round-off (1e-12 voxel, as a rotated physical round trip gives) make the exact
   // degeneracies near-degenerate: the Delaunay tetrahedralization then has flat tetrahedra unless nodes are nudged.
-  auto labels = MakeLabels(LabelImageType::SizeType{ { 24, 24, 24 } },
-                           [](const LabelImageType::IndexType & i)
-                           { return static_cast<int32_t>(i[0] / 6 + 4 * (i[1] / 6) + 16 * (i[2] / 6)); });
+  auto labels = MakeLabels(LabelImageType::SizeType{ { 24, 24, 24 } }, [](const LabelImageType::IndexType & i) {
+    return static_cast<int32_t>(i[0] / 6 + 4 * (i[1] / 6) + 16 * (i[2] / 6));
+  });
   labels->SetDirection(itk::dmr::test::RotationDirection3D<LabelImageType>({ 3.0, -1.0, 2.0 }, 1.1));
   LabelImageType::PointType origin;
   origin[0] = 13.1;

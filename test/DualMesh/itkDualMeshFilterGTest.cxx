@@ -47,7 +47,8 @@ TEST(DualMeshFilter, BasicObjectMethodsAndPrint)
   auto filter = FilterType::New();
   EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(filter.GetPointer(), "DualMeshFilter", "ImageToMeshFilter"));
   EXPECT_TRUE(itk::dmr::test::PrintMentions(
-    filter.GetPointer(), { "NumberOfNodes", "NumberOfElements", "NumberOfBoundaryNodes", "NumberOfSkippedConstraints" }));
+    filter.GetPointer(),
+    { "NumberOfNodes", "NumberOfElements", "NumberOfBoundaryNodes", "NumberOfSkippedConstraints" }));
   auto sites = FilterType::SitesType::New();
   filter->SetSites(sites);
   EXPECT_EQ(filter->GetSites(), sites.GetPointer());
@@ -55,8 +56,8 @@ TEST(DualMeshFilter, BasicObjectMethodsAndPrint)
 
 TEST(DualMeshFilter, ElementsArePositiveAndTileTheImageBox)
 {
-  const auto phantom = MakeDualMeshPhantom();
-  const auto grid = phantom.GetGrid();
+  const auto   phantom = MakeDualMeshPhantom();
+  const auto   grid = phantom.GetGrid();
   const auto & mesh = phantom.GetMesh();
   ASSERT_GT(mesh.elements.size(), 0u);
   EXPECT_TRUE(itk::dmr::test::MeshTilesTheBox<2>(grid, mesh));
@@ -78,9 +79,9 @@ TEST(DualMeshFilter, TriangulationIsConforming)
 {
   // positive areas summing to the box area could still overlap and leave gaps; in a conforming triangulation every
   // edge is used by one triangle (box border) or by two with opposite orientations (interior)
-  const auto   phantom = MakeDualMeshPhantom();
-  const auto   grid = phantom.GetGrid();
-  const auto & mesh = phantom.GetMesh();
+  const auto                                 phantom = MakeDualMeshPhantom();
+  const auto                                 grid = phantom.GetGrid();
+  const auto &                               mesh = phantom.GetMesh();
   std::map<std::pair<int32_t, int32_t>, int> directed;
   for (const auto & e : mesh.elements)
   {
@@ -135,11 +136,11 @@ TEST(DualMeshFilter, InnerCellNodesAreTheSites)
 {
   // an inner cell (no pixel on the border) is represented by its site: the CVT centroid in the grid frame, which
   // reaches the dual mesh through physical space (rotated, shifted, anisotropic image)
-  const auto   phantom = MakeDualMeshPhantom();
-  const auto   grid = phantom.GetGrid();
-  const auto & mesh = phantom.GetMesh();
-  const auto * labels = phantom.cvt->GetOutput()->GetBufferPointer();
-  const auto & centroids = phantom.cvt->GetCore().GetCentroids();
+  const auto           phantom = MakeDualMeshPhantom();
+  const auto           grid = phantom.GetGrid();
+  const auto &         mesh = phantom.GetMesh();
+  const auto *         labels = phantom.cvt->GetOutput()->GetBufferPointer();
+  const auto &         centroids = phantom.cvt->GetCore().GetCentroids();
   std::vector<uint8_t> touchesBorder(20, 0);
   for (size_t p = 0; p < grid.numberOfPixels; ++p)
   {
@@ -218,8 +219,9 @@ TEST(DualMeshFilter, WorksWithoutSitesAndWithUnitGeometry)
   origin.Fill(0.0);
   ImageType::DirectionType direction;
   direction.SetIdentity();
-  DualMeshPhantom phantom(itk::dmr::test::SmoothDensity2D(ImageType::SizeType{ { 40, 36 } }, spacing, origin, direction), 16);
-  auto            noSites = FilterType::New();
+  DualMeshPhantom phantom(
+    itk::dmr::test::SmoothDensity2D(ImageType::SizeType{ { 40, 36 } }, spacing, origin, direction), 16);
+  auto noSites = FilterType::New();
   noSites->SetInput(phantom.cvt->GetOutput());
   noSites->Update();
   EXPECT_TRUE(itk::dmr::test::MeshTilesTheBox<2>(phantom.GetGrid(), noSites->GetSimplexMesh()));

@@ -36,17 +36,17 @@ using MeshMode = itk::DynamicMeshRegistrationEnums::MeshMode;
 
 struct Outcome
 {
-  double dice{ 0 }, diceInitial{ 0 }, jacobianMin{ 0 }, jacobianMax{ 0 }, seconds{ 0 };
+  double                           dice{ 0 }, diceInitial{ 0 }, jacobianMin{ 0 }, jacobianMax{ 0 }, seconds{ 0 };
   std::vector<std::vector<double>> meshNodes; // nodes (grid frame) at every iteration an observer kept
 };
 
 Outcome
-Register(const ImageType * fixed,
-         const ImageType * moving,
-         MeshMode          mode,
-         unsigned int      iterations,
+Register(const ImageType *                 fixed,
+         const ImageType *                 moving,
+         MeshMode                          mode,
+         unsigned int                      iterations,
          const std::vector<unsigned int> & keepMeshAt = {},
-         const MethodType::MeshType * staticMesh = nullptr)
+         const MethodType::MeshType *      staticMesh = nullptr)
 {
   auto method = MethodType::New();
   method->SetFixedImage(fixed);
@@ -113,8 +113,8 @@ Report(const std::string & name, const Outcome & o)
 TEST(PaperExperiments, CircleToLeafMatchesAndGathersNodesAtTheLeftContour)
 {
   using Leaf = itk::dmr::CircleToLeaf;
-  auto fixed = itk::dmr::RenderShape(Leaf::Width, Leaf::Height, Leaf::Target);
-  auto moving = itk::dmr::RenderShape(Leaf::Width, Leaf::Height, Leaf::Source);
+  auto       fixed = itk::dmr::RenderShape(Leaf::Width, Leaf::Height, Leaf::Target);
+  auto       moving = itk::dmr::RenderShape(Leaf::Width, Leaf::Height, Leaf::Source);
   const auto outcome = Register(fixed, moving, MeshMode::Dynamic, 160, { 1, 160 });
   Report("circle-to-leaf dynamic 100 nodes 160 iterations", outcome);
   EXPECT_GE(outcome.dice, 0.95);
@@ -148,10 +148,10 @@ TEST(PaperExperiments, CircleToLeafMatchesAndGathersNodesAtTheLeftContour)
 TEST(PaperExperiments, CircleToEpsilonDynamicVersusStaticMeshes)
 {
   using Eps = itk::dmr::CircleToEpsilon;
-  auto fixed = itk::dmr::RenderShape(Eps::Width, Eps::Height, Eps::Target);
-  auto moving = itk::dmr::RenderShape(Eps::Width, Eps::Height, Eps::Source);
+  auto       fixed = itk::dmr::RenderShape(Eps::Width, Eps::Height, Eps::Target);
+  auto       moving = itk::dmr::RenderShape(Eps::Width, Eps::Height, Eps::Source);
   const auto fidelity = itk::dmr::MakeFidelityMesh(fixed.GetPointer(), 0.5, 100);
-  auto fidelityMesh = itk::dmr::ToItkMesh<2, MethodType::MeshType>(fidelity, fixed.GetPointer());
+  auto       fidelityMesh = itk::dmr::ToItkMesh<2, MethodType::MeshType>(fidelity, fixed.GetPointer());
 
   const auto dynamicMesh = Register(fixed, moving, MeshMode::Dynamic, 400);
   const auto regularMesh = Register(fixed, moving, MeshMode::Regular, 400);

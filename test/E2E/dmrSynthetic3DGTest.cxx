@@ -48,7 +48,7 @@ SetGeometry(ImageType * image)
   origin[2] = 7.5;
   image->SetOrigin(origin);
   // rotation by 0.3 rad about z then 0.2 rad about x
-  const double a = 0.3, b = 0.2;
+  const double             a = 0.3, b = 0.2;
   ImageType::DirectionType rz, rx;
   rz.SetIdentity();
   rx.SetIdentity();
@@ -169,7 +169,7 @@ MakePair()
   SetGeometry(pair.moving);
   pair.fixed->Allocate();
   pair.moving->Allocate();
-  const PointType centre = Centre(pair.fixed);
+  const PointType                              centre = Centre(pair.fixed);
   itk::ImageRegionIteratorWithIndex<ImageType> it(pair.fixed, pair.fixed->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
   {
@@ -191,9 +191,9 @@ struct Errors
 Errors
 DenseError(const MethodType::DisplacementFieldType * field, const ImageType * fixed)
 {
-  const PointType     centre = Centre(fixed);
-  Errors              e;
-  std::vector<double> errors;
+  const PointType                                                           centre = Centre(fixed);
+  Errors                                                                    e;
+  std::vector<double>                                                       errors;
   itk::ImageRegionConstIteratorWithIndex<MethodType::DisplacementFieldType> it(field,
                                                                                field->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
@@ -228,7 +228,8 @@ DenseError(const MethodType::DisplacementFieldType * field, const ImageType * fi
 }
 
 class Synthetic3D : public ::testing::TestWithParam<MeshMode>
-{};
+{
+};
 
 TEST_P(Synthetic3D, RecoversTheKnownFieldWithPositiveJacobian)
 {
@@ -245,16 +246,17 @@ TEST_P(Synthetic3D, RecoversTheKnownFieldWithPositiveJacobian)
   method->SetNumberOfIterations(60);
   method->Update();
 
-  const Errors e = DenseError(method->GetDisplacementField(), pair.fixed);
+  const Errors              e = DenseError(method->GetDisplacementField(), pair.fixed);
   std::pair<double, double> jacobianRange;
   itk::dmr::JacobianDeterminantImage(method->GetDisplacementField(), jacobianRange, method->GetMultiThreader());
   const auto & t = method->GetTiming();
-  std::cout << "[figure] 3D synthetic 64^3 (" << GetParam() << " mesh, 2000 nodes, 60 iterations, energy ratio 0.2): dense error mean "
-            << e.mean << " mm (initial " << e.initialMean << "), p95 " << e.p95 << ", max " << e.max << " over "
-            << e.voxels << " voxels; det J in [" << jacobianRange.first << ", " << jacobianRange.second << "]; SSD "
-            << method->GetHistory().front().ssd << " -> " << method->GetFinalSSD() << "; total " << t.total
-            << " s (tess. opt. " << t.tessellationOptimization << ", mesh " << t.meshConstruction << ", bary "
-            << t.barycentric << ", registration " << t.registration << ")" << std::endl;
+  std::cout << "[figure] 3D synthetic 64^3 (" << GetParam()
+            << " mesh, 2000 nodes, 60 iterations, energy ratio 0.2): dense error mean " << e.mean << " mm (initial "
+            << e.initialMean << "), p95 " << e.p95 << ", max " << e.max << " over " << e.voxels << " voxels; det J in ["
+            << jacobianRange.first << ", " << jacobianRange.second << "]; SSD " << method->GetHistory().front().ssd
+            << " -> " << method->GetFinalSSD() << "; total " << t.total << " s (tess. opt. "
+            << t.tessellationOptimization << ", mesh " << t.meshConstruction << ", bary " << t.barycentric
+            << ", registration " << t.registration << ")" << std::endl;
   EXPECT_GT(e.initialMean, 1.0); // the test pair is not trivial
   EXPECT_LT(e.mean, 0.5);        // voxels are 1 mm
   EXPECT_GT(jacobianRange.first, 0.0);

@@ -57,7 +57,7 @@ FileDimension(const std::string & path)
   return io->GetNumberOfDimensions();
 }
 
-template<unsigned int D>
+template <unsigned int D>
 typename itk::VectorImage<double, D>::Pointer
 Read(const std::string & path)
 {
@@ -67,7 +67,7 @@ Read(const std::string & path)
   return reader->GetOutput();
 }
 
-template<unsigned int D>
+template <unsigned int D>
 int
 SameGrid(const std::string & pathA, const std::string & pathB)
 {
@@ -127,7 +127,7 @@ SameGrid(const std::string & pathA, const std::string & pathB)
   return failures == 0 ? EXIT_SUCCESS : EXIT_FAILURE;
 }
 
-template<unsigned int D>
+template <unsigned int D>
 int
 Components(const std::string & path, unsigned int expected)
 {
@@ -142,7 +142,7 @@ Components(const std::string & path, unsigned int expected)
   return EXIT_SUCCESS;
 }
 
-template<unsigned int D>
+template <unsigned int D>
 int
 MinAbove(const std::string & path, double threshold)
 {
@@ -174,7 +174,7 @@ MinAbove(const std::string & path, double threshold)
   return EXIT_SUCCESS;
 }
 
-template<typename TImage>
+template <typename TImage>
 void
 Write(const TImage * image, const std::string & path)
 {
@@ -195,7 +195,8 @@ Make3D(const std::string & path, int shift)
   for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
   {
     const auto & idx = it.GetIndex();
-    const bool   cube = idx[0] >= 4 + shift && idx[0] < 10 + shift && idx[1] >= 3 && idx[1] < 8 && idx[2] >= 2 && idx[2] < 7;
+    const bool   cube =
+      idx[0] >= 4 + shift && idx[0] < 10 + shift && idx[1] >= 3 && idx[1] < 8 && idx[2] >= 2 && idx[2] < 7;
     it.Set(static_cast<float>(0.01 * idx[0] + (cube ? 1.0 : 0.0)));
   }
   Write(image.GetPointer(), path);
@@ -249,7 +250,8 @@ Make2D(const std::string & path, bool constant)
 int
 Usage()
 {
-  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | make-3d-mask OUT | "
+  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | "
+               "make-3d-mask OUT | "
                "make-2d OUT | "
                "make-constant OUT\n";
   return 2;

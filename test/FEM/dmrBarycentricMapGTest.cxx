@@ -224,13 +224,13 @@ TEST(BarycentricMap, InterpolateReproducesALinearField)
 TEST(BarycentricMap, GatherConservesTheTotalLoad)
 {
   // the shape functions are a partition of unity: sum_a f_a = scale sum_x f(x), per component
-  const auto         phantom = itk::dmr::test::MakeDualMeshPhantom();
-  const auto         grid = phantom.GetGrid();
-  const auto &       mesh = phantom.GetMesh();
-  std::mt19937       engine(3u);
+  const auto                            phantom = itk::dmr::test::MakeDualMeshPhantom();
+  const auto                            grid = phantom.GetGrid();
+  const auto &                          mesh = phantom.GetMesh();
+  std::mt19937                          engine(3u);
   std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-  std::vector<float> field(grid.numberOfPixels * 2);
-  double             total[2] = {};
+  std::vector<float>                    field(grid.numberOfPixels * 2);
+  double                                total[2] = {};
   for (size_t i = 0; i < field.size(); ++i)
   {
     field[i] = u(engine);
@@ -262,9 +262,9 @@ TEST(BarycentricMap, GatherConservesTheTotalLoad)
 
 TEST(BarycentricMap, MeshThatDoesNotCoverTheImageThrows)
 {
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 24, 20 }, std::array<double, 2>{ 1.0, 1.0 });
-  const itk::dmr::Grid<2> half(std::array<size_t, 2>{ 12, 20 }, std::array<double, 2>{ 1.0, 1.0 });
-  const auto              mesh = itk::dmr::MakeRegularMesh<2>(half, { 4, 5 });
+  const itk::dmr::Grid<2>     grid(std::array<size_t, 2>{ 24, 20 }, std::array<double, 2>{ 1.0, 1.0 });
+  const itk::dmr::Grid<2>     half(std::array<size_t, 2>{ 12, 20 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto                  mesh = itk::dmr::MakeRegularMesh<2>(half, { 4, 5 });
   itk::dmr::BarycentricMap<2> map;
   EXPECT_THROW(map.Build(grid, mesh, nullptr), itk::ExceptionObject);
 }

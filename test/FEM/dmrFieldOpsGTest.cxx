@@ -33,7 +33,8 @@ GaussianBump(const itk::dmr::Grid<2> & grid, double amplitude, double sigma)
   for (size_t p = 0; p < grid.numberOfPixels; ++p)
   {
     const auto   i = grid.Index(p);
-    const double g = amplitude * std::exp(-((i[0] - 31.5) * (i[0] - 31.5) + (i[1] - 31.5) * (i[1] - 31.5)) / (2 * sigma * sigma));
+    const double g =
+      amplitude * std::exp(-((i[0] - 31.5) * (i[0] - 31.5) + (i[1] - 31.5) * (i[1] - 31.5)) / (2 * sigma * sigma));
     v[2 * p] = static_cast<float>(g * grid.spacing[0]);
     v[2 * p + 1] = static_cast<float>(-0.75 * g * grid.spacing[1]);
   }
@@ -99,8 +100,10 @@ TEST(ExponentialField, AnisotropicSpacingGivesTheSameMapInPixels)
 {
   // the same field in pixels on a 1.5 x 0.75 mm grid: the spacing is a pure change of units, so exp(v) in pixels
   // is the isotropic one (float rounding aside)
-  const auto isotropic = CheckExpInverse(itk::dmr::Grid<2>(std::array<size_t, 2>{ 64, 64 }, std::array<double, 2>{ 1.0, 1.0 }));
-  const auto anisotropic = CheckExpInverse(itk::dmr::Grid<2>(std::array<size_t, 2>{ 64, 64 }, std::array<double, 2>{ 1.5, 0.75 }));
+  const auto isotropic =
+    CheckExpInverse(itk::dmr::Grid<2>(std::array<size_t, 2>{ 64, 64 }, std::array<double, 2>{ 1.0, 1.0 }));
+  const auto anisotropic =
+    CheckExpInverse(itk::dmr::Grid<2>(std::array<size_t, 2>{ 64, 64 }, std::array<double, 2>{ 1.5, 0.75 }));
   ASSERT_EQ(isotropic.size(), anisotropic.size());
   for (size_t i = 0; i < isotropic.size(); ++i)
   {
@@ -133,10 +136,10 @@ TEST(ExponentialField, SmallFieldIsNotSquaredAndConstantFieldIsATranslation)
 
 TEST(ComposeFields, ComposingWithZeroGivesTheField)
 {
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 32, 28 }, std::array<double, 2>{ 1.0, 1.7 });
-  std::mt19937            engine(8u);
+  const itk::dmr::Grid<2>               grid(std::array<size_t, 2>{ 32, 28 }, std::array<double, 2>{ 1.0, 1.7 });
+  std::mt19937                          engine(8u);
   std::uniform_real_distribution<float> u(-2.0f, 2.0f);
-  std::vector<float>      w(grid.numberOfPixels * 2), zero(w.size(), 0.0f), out(w.size());
+  std::vector<float>                    w(grid.numberOfPixels * 2), zero(w.size(), 0.0f), out(w.size());
   for (auto & x : w)
   {
     x = u(engine);

@@ -261,8 +261,8 @@ template <unsigned int D>
 void
 CheckAssemblyAgainstTriplets(const itk::dmr::SimplexMesh<D> & mesh)
 {
-  const auto             solver = MakeSolver<D>(mesh);
-  constexpr unsigned int NV = D + 1;
+  const auto                          solver = MakeSolver<D>(mesh);
+  constexpr unsigned int              NV = D + 1;
   std::vector<Eigen::Triplet<double>> triplets;
   double                              Ke[NV * D * NV * D];
   for (size_t e = 0; e < mesh.elements.size(); ++e)
@@ -272,8 +272,8 @@ CheckAssemblyAgainstTriplets(const itk::dmr::SimplexMesh<D> & mesh)
       for (unsigned int i = 0; i < D; ++i)
         for (unsigned int b = 0; b < NV; ++b)
           for (unsigned int j = 0; j < D; ++j)
-            triplets.emplace_back(mesh.elements[e][a] * D + i, mesh.elements[e][b] * D + j,
-                                  Ke[(a * D + i) * NV * D + b * D + j]);
+            triplets.emplace_back(
+              mesh.elements[e][a] * D + i, mesh.elements[e][b] * D + j, Ke[(a * D + i) * NV * D + b * D + j]);
   }
   Eigen::SparseMatrix<double> reference(mesh.NumberOfNodes() * D, mesh.NumberOfNodes() * D);
   reference.setFromTriplets(triplets.begin(), triplets.end());
@@ -336,8 +336,8 @@ TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
 {
   auto solver = itk::LinearElasticFEMSolver<2>::New();
   EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(solver.GetPointer(), "LinearElasticFEMSolver", "Object"));
-  EXPECT_TRUE(
-    itk::dmr::test::PrintMentions(solver.GetPointer(), { "Lambda", "Mu", "NumberOfFreeNodes", "NumberOfDegreesOfFreedom" }));
+  EXPECT_TRUE(itk::dmr::test::PrintMentions(solver.GetPointer(),
+                                            { "Lambda", "Mu", "NumberOfFreeNodes", "NumberOfDegreesOfFreedom" }));
   DMR_EXPECT_SET_GET(solver, Lambda, 4.5);
   DMR_EXPECT_SET_GET(solver, Mu, 0.25);
   solver->SetLambda(-1.0);

@@ -36,7 +36,8 @@ SmoothDensity2D(const Image<float, 2>::SizeType &      size,
                 const Image<float, 2>::DirectionType & direction)
 {
   using ImageType = Image<float, 2>;
-  auto image = MakeImage<ImageType>(size, spacing, origin, direction, [](const ImageType::PointType &) { return 0.0f; });
+  auto image =
+    MakeImage<ImageType>(size, spacing, origin, direction, [](const ImageType::PointType &) { return 0.0f; });
   // defined on the index grid so the pattern does not depend on the physical placement
   ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
@@ -102,8 +103,8 @@ MakeDualMeshPhantom(SizeValueType numberOfCells = 20)
   ImageType::PointType origin;
   origin[0] = -20.0;
   origin[1] = 35.0;
-  return DualMeshPhantom(
-    SmoothDensity2D(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318)), numberOfCells);
+  return DualMeshPhantom(SmoothDensity2D(size, spacing, origin, RotationDirection2D<ImageType>(-0.6981317007977318)),
+                         numberOfCells);
 }
 /** The same density on a unit-spacing grid (rotated, shifted): border-pixel averages are exact there. */
 inline DualMeshPhantom

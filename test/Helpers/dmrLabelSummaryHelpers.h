@@ -37,7 +37,7 @@ namespace test
 {
 /** The LabelSummary straight from its definition (dmrLabelSummary.h), one voxel at a time: the reference of the CPU
  * and GPU summaries. */
-template<unsigned int D>
+template <unsigned int D>
 LabelSummary
 BruteForceSummary(const Grid<D> & grid, const std::vector<int32_t> & labels, size_t numberOfCells)
 {
@@ -58,8 +58,9 @@ BruteForceSummary(const Grid<D> & grid, const std::vector<int32_t> & labels, siz
           LabelSummary::PairKey(static_cast<uint32_t>(c), static_cast<uint32_t>(labels[p + grid.stride[k]])));
       }
     }
-    auto atSide = [&](unsigned int k, unsigned int side)
-    { return idx[k] == (side ? static_cast<int64_t>(grid.size[k]) - 1 : 0); };
+    auto atSide = [&](unsigned int k, unsigned int side) {
+      return idx[k] == (side ? static_cast<int64_t>(grid.size[k]) - 1 : 0);
+    };
     auto strictlyInner = [&](unsigned int k) { return idx[k] > 0 && idx[k] + 1 < static_cast<int64_t>(grid.size[k]); };
     for (unsigned int f = 0; f < 2 * D; ++f)
     {
@@ -116,8 +117,7 @@ SameSummary(const LabelSummary & a, const LabelSummary & b)
     return ::testing::AssertionFailure() << "geometry differs: " << a.dimension << "D " << a.numberOfCells
                                          << " cells vs " << b.dimension << "D " << b.numberOfCells << " cells";
   }
-  auto firstDifference = [](const char * name, const auto & x, const auto & y) -> ::testing::AssertionResult
-  {
+  auto firstDifference = [](const char * name, const auto & x, const auto & y) -> ::testing::AssertionResult {
     if (x.size() != y.size())
     {
       return ::testing::AssertionFailure() << name << ": " << x.size() << " vs " << y.size() << " entries";
@@ -167,7 +167,7 @@ RandomLabels(size_t numberOfPixels, size_t numberOfCells, uint32_t seed)
 /** A discrete Voronoi diagram (a cheap stand-in for a CVT) of one site per box of a cellsPerAxis lattice, each site at
  * a random voxel of its box; a voxel takes the nearest site among its own and the neighbouring boxes (physical
  * distance with the grid's spacing). Every cell holds at least its site's voxel; cells are numbered box by box. */
-template<unsigned int D>
+template <unsigned int D>
 std::vector<int32_t>
 LatticeVoronoiLabels(const Grid<D> & grid, const std::array<size_t, D> & cellsPerAxis, uint32_t seed)
 {

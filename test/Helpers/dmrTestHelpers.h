@@ -58,8 +58,8 @@ LabelsAreCompact(const std::vector<int32_t> & labels, size_t numberOfCells)
   {
     if (labels[p] < 0 || static_cast<size_t>(labels[p]) >= numberOfCells)
     {
-      return ::testing::AssertionFailure() << "pixel " << p << " has label " << labels[p] << ", outside [0, "
-                                           << numberOfCells << ")";
+      return ::testing::AssertionFailure()
+             << "pixel " << p << " has label " << labels[p] << ", outside [0, " << numberOfCells << ")";
     }
     ++count[labels[p]];
   }
@@ -103,8 +103,7 @@ CellsAreFaceConnected(const Grid<D> & grid, const std::vector<int32_t> & labels)
     {
       if (componentSeen[label])
       {
-        return ::testing::AssertionFailure() << "cell " << label << " has a second component containing pixel "
-                                             << seed;
+        return ::testing::AssertionFailure() << "cell " << label << " has a second component containing pixel " << seed;
       }
       componentSeen[label] = 1;
     }
@@ -163,8 +162,10 @@ struct CellStatistics
 
 template <unsigned int D>
 CellStatistics<D>
-ComputeCellStatistics(const Grid<D> & grid, const float * density, const std::vector<int32_t> & labels,
-                      size_t numberOfCells)
+ComputeCellStatistics(const Grid<D> &              grid,
+                      const float *                density,
+                      const std::vector<int32_t> & labels,
+                      size_t                       numberOfCells)
 {
   CellStatistics<D> s;
   s.mass.assign(numberOfCells, 0.0);
@@ -240,8 +241,8 @@ MakeImage(const typename TImage::SizeType &      size,
 /** Image with identity direction and zero origin from a flat buffer (first index fastest). */
 template <typename TImage>
 typename TImage::Pointer
-ImageFromBuffer(const typename TImage::SizeType &    size,
-                const typename TImage::SpacingType & spacing,
+ImageFromBuffer(const typename TImage::SizeType &               size,
+                const typename TImage::SpacingType &            spacing,
                 const std::vector<typename TImage::PixelType> & buffer)
 {
   auto image = TImage::New();
@@ -285,8 +286,7 @@ FixedNodesAreTheBorderNodes(const Grid<D> & grid, const SimplexMesh<D> & mesh)
 {
   if (mesh.fixed.size() != mesh.NumberOfNodes())
   {
-    return ::testing::AssertionFailure() << "fixed flags: " << mesh.fixed.size() << ", nodes: "
-                                         << mesh.NumberOfNodes();
+    return ::testing::AssertionFailure() << "fixed flags: " << mesh.fixed.size() << ", nodes: " << mesh.NumberOfNodes();
   }
   for (size_t i = 0; i < mesh.NumberOfNodes(); ++i)
   {
@@ -298,15 +298,14 @@ FixedNodesAreTheBorderNodes(const Grid<D> & grid, const SimplexMesh<D> & mesh)
       const double tol = 1e-6 * grid.spacing[k];
       if (x < -tol || x > hi + tol)
       {
-        return ::testing::AssertionFailure() << "node " << i << " lies outside the box along axis " << k << ": "
-                                             << x;
+        return ::testing::AssertionFailure() << "node " << i << " lies outside the box along axis " << k << ": " << x;
       }
       onBorder = onBorder || std::abs(x) <= tol || std::abs(x - hi) <= tol;
     }
     if (onBorder != (mesh.fixed[i] != 0))
     {
-      return ::testing::AssertionFailure() << "node " << i << (onBorder ? " on" : " off") << " the border has fixed = "
-                                           << int(mesh.fixed[i]);
+      return ::testing::AssertionFailure()
+             << "node " << i << (onBorder ? " on" : " off") << " the border has fixed = " << int(mesh.fixed[i]);
     }
   }
   return ::testing::AssertionSuccess();
@@ -328,8 +327,8 @@ ItkMeshConvertsBackTo(const TItkMesh * output, const TImage * image, const Simpl
   {
     if (!(std::abs(back.nodes[i] - mesh.nodes[i]) <= 1e-9))
     {
-      return ::testing::AssertionFailure() << "node coordinate " << i << ": " << back.nodes[i] << " back, "
-                                           << mesh.nodes[i] << " expected";
+      return ::testing::AssertionFailure()
+             << "node coordinate " << i << ": " << back.nodes[i] << " back, " << mesh.nodes[i] << " expected";
     }
   }
   if (back.elements != mesh.elements)

@@ -65,10 +65,23 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   auto method = MethodType::New();
   EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(method.GetPointer(), "FEMRegistrationMethod", "ProcessObject"));
   EXPECT_TRUE(itk::dmr::test::PrintMentions(method.GetPointer(),
-                                            { "NumberOfIterations", "NumberOfNodes", "NumberOfLevels", "Lambda", "Mu",
-                                              "EnergyRatio", "AlphaFactor", "CVTEpsilon", "MaximumNumberOfSweeps",
-                                              "ReinitializationInterval", "MeshMode", "RegularGridSize", "Backend",
-                                              "Beta", "FinalSSD", "ForceGradient", "MaximumStepHalvings" }));
+                                            { "NumberOfIterations",
+                                              "NumberOfNodes",
+                                              "NumberOfLevels",
+                                              "Lambda",
+                                              "Mu",
+                                              "EnergyRatio",
+                                              "AlphaFactor",
+                                              "CVTEpsilon",
+                                              "MaximumNumberOfSweeps",
+                                              "ReinitializationInterval",
+                                              "MeshMode",
+                                              "RegularGridSize",
+                                              "Backend",
+                                              "Beta",
+                                              "FinalSSD",
+                                              "ForceGradient",
+                                              "MaximumStepHalvings" }));
   DMR_EXPECT_SET_GET(method, MaximumStepHalvings, 2u);
   DMR_EXPECT_SET_GET(method, ForceGradient, itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
   DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);
@@ -124,7 +137,7 @@ TEST(FEMRegistrationMethod, SafeguardedStepNeverRaisesTheMSSD)
   plain->SetMaximumStepHalvings(0);
   plain->Update();
   const auto & p = plain->GetHistory();
-  size_t rises = 0;
+  size_t       rises = 0;
   for (size_t i = 1; i < p.size(); ++i)
   {
     rises += p[i].mssd > p[i - 1].mssd ? 1 : 0;
@@ -178,7 +191,7 @@ TEST(FEMRegistrationMethod, TransformOutputWarpsLikeTheField)
   resample->SetTransform(method->GetTransform());
   resample->SetOutputParametersFromImage(method->GetFixedImage());
   resample->Update();
-  double ssd = 0.0;
+  double       ssd = 0.0;
   const auto * w = resample->GetOutput()->GetBufferPointer();
   const auto * f = method->GetFixedImage()->GetBufferPointer();
   for (size_t p = 0; p < 64 * 56; ++p)
@@ -196,8 +209,8 @@ TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
   reference->SetRegularGridSize(6);
   reference->Update();
 
-  auto fixed = Blob(64, 56, 30, 28, 16, 12);
-  auto moving = Blob(64, 56, 34, 27, 12, 12);
+  auto                   fixed = Blob(64, 56, 30, 28, 16, 12);
+  auto                   moving = Blob(64, 56, 34, 27, 12, 12);
   ImageType::SpacingType spacing;
   spacing[0] = 0.5;
   spacing[1] = 2.0;
@@ -227,9 +240,9 @@ TEST(FEMRegistrationMethod, PhysicalSpaceIsRespected)
   EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 0.05 * reference->GetFinalSSD());
   EXPECT_LT(method->GetFinalSSD(), 0.7 * method->GetHistory().front().ssd);
   // the field points the same way in pixel terms
-  const auto * u = method->GetDisplacementField()->GetBufferPointer();
-  const auto * r = reference->GetDisplacementField()->GetBufferPointer();
-  const size_t p = 28 * 64 + 42; // right edge of the moving blob
+  const auto *           u = method->GetDisplacementField()->GetBufferPointer();
+  const auto *           r = reference->GetDisplacementField()->GetBufferPointer();
+  const size_t           p = 28 * 64 + 42; // right edge of the moving blob
   itk::Vector<double, 2> phys;
   phys[0] = u[p][0];
   phys[1] = u[p][1];

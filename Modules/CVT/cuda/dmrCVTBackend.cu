@@ -75,7 +75,7 @@ struct GridParams
 
 /** The 3^D neighbourhood of DiscreteCVT as bit sets: position q = sum_k (offset_k + 1) 3^k (bit q). Everything is
  * a compile-time constant, so the connectivity test needs no memory. */
-template<unsigned int D>
+template <unsigned int D>
 struct Neighbourhood
 {
   static constexpr unsigned int Size = D == 2 ? 9 : 27;
@@ -180,7 +180,7 @@ struct StatisticsReport
   unsigned long long badCell;  // smallest cell with no positive mass, or ~0
 };
 
-template<unsigned int D>
+template <unsigned int D>
 __device__ inline void
 IndexOf(const GridParams & g, int32_t p, int32_t * idx)
 {
@@ -191,7 +191,7 @@ IndexOf(const GridParams & g, int32_t p, int32_t * idx)
   }
 }
 
-template<unsigned int D>
+template <unsigned int D>
 __device__ inline void
 PositionOf(const GridParams & g, const int32_t * idx, double * x)
 {
@@ -202,7 +202,7 @@ PositionOf(const GridParams & g, const int32_t * idx, double * x)
 }
 
 /** Paper Eq. 23, the arithmetic of dmr::SwapEnergyChange. */
-template<unsigned int D>
+template <unsigned int D>
 __device__ inline double
 SwapEnergyChange(double w, const double * x, double mi, const double * ri, double mj, const double * rj)
 {
@@ -217,7 +217,7 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
 
 /** DiscreteCVT::RemovalKeepsCellConnected: the cell's pixels of the 3^D neighbourhood that touch p by a face stay
  * face-connected (inside the neighbourhood, without p). Bit-set flood fill. */
-template<unsigned int D>
+template <unsigned int D>
 __device__ inline bool
 RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t p, const int32_t * idx, int32_t own)
 {
@@ -281,7 +281,7 @@ WaitForPrevious()
 }
 
 /** kernel<<<blocks, threads, 0, stream>>>(args...) as a programmatic dependent launch (see WaitForPrevious). */
-template<typename... TParams, typename... TArgs>
+template <typename... TParams, typename... TArgs>
 void
 LaunchAfter(void (*kernel)(TParams...),
             unsigned int blocks,
@@ -365,7 +365,7 @@ CountProposal(const Proposal & prop, BatchCounts & batch, int32_t * count, int32
  * particular order: the cell sums sort their entries by pixel) and counting them per cell.
  * The batch uses the counter set state->nextParity (it becomes state->parity); the set of the previous batch, whose
  * kernels have all finished, is cleared here for the next one. */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 ProposeKernel(GridParams      g,
               ColourParams    cp,
@@ -573,7 +573,7 @@ ScatterKernel(SweepState *     state,
  * entries at a time, and every lane adds them up in entry order from shuffles: the same products added in the same
  * order as the CPU, so the sums are bit-identical, while the loads of an entry's proposal and density overlap across
  * the lanes. */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 CellKernel(GridParams       g,
            SweepState *     state,
@@ -725,7 +725,7 @@ RecordDecision(SweepState * state, double dE, int32_t n, int32_t colour, bool ha
 
 /** Commits the batch from grid-stride thread `thread`: new labels, and per touched cell m += dm, r += dS / m
  * (DiscreteCVT::CommitProposals). */
-template<unsigned int D>
+template <unsigned int D>
 __device__ inline void
 CommitBatch(size_t           thread,
             size_t           threads,
@@ -775,7 +775,7 @@ DecideKernel(SweepState * state, int32_t * counters, const double * term, int32_
 }
 
 /** Halving path: commits the batch when the host's decision says so. */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 CommitKernel(SweepState *     state,
              const Proposal * proposals,
@@ -807,7 +807,7 @@ CommitKernel(SweepState *     state,
 
 /** Sweep path: every block computes the same dE (BatchEnergyChange) and commits its share of the batch when dE < 0;
  * block 0 records the decision (a rejection halts the sweep) and hands the counter set over to the next batch. */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 DecideCommitKernel(SweepState *     state,
                    int32_t *        counters,
@@ -932,7 +932,7 @@ CellRangeKernel(const uint32_t * sortedLabels, int32_t n, int32_t * start, int32
 /** One warp per cell: mass and centroid summed over the cell's pixels in pixel order, the order of
  * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and form their terms (w, w x) in parallel; every lane
  * then adds the 32 terms in order (broadcast by shuffles), so the sums are the sequential ones. */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 CellStatisticsKernel(GridParams         g,
                      const uint32_t *   pixels,
@@ -1002,7 +1002,7 @@ CellStatisticsKernel(GridParams         g,
 }
 
 /** Energy, paper Eq. 10: fixed grid of EnergyBlocks blocks, each a partial sum (deterministic shape). */
-template<unsigned int D>
+template <unsigned int D>
 __global__ void
 EnergyPartialKernel(GridParams      g,
                     const int32_t * labels,
@@ -1168,7 +1168,7 @@ struct CVTSwapOptimizer::Impl
   }
 
   /** Masses and centroids summed in pixel order (stable sort by label, one warp per cell), then the energy. */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   RecomputeStatistics(size_t numberOfCells)
   {
@@ -1249,7 +1249,7 @@ struct CVTSwapOptimizer::Impl
     energy = ComputeEnergy<D>();
   }
 
-  template<unsigned int D>
+  template <unsigned int D>
   double
   ComputeEnergy()
   {
@@ -1266,7 +1266,7 @@ struct CVTSwapOptimizer::Impl
   }
 
   /** Propose for one colour: the proposals, their count and the per-cell counts of the batch. */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueuePropose(const ColourParams & cp)
   {
@@ -1292,7 +1292,7 @@ struct CVTSwapOptimizer::Impl
 
   /** The cells' entries of the counted batch and their sums (Allocate, Scatter, Cell). byPixel: the batch is in no
    * particular order (the sweep's), so the entries are ordered by pixel; otherwise by proposal index (halving). */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueueCellSums(bool byPixel)
   {
@@ -1344,7 +1344,7 @@ struct CVTSwapOptimizer::Impl
   }
 
   /** Halving path: joint change of the batch the host placed in `proposals`, and the decision (not committed). */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueueJointChange(int32_t colour)
   {
@@ -1371,7 +1371,7 @@ struct CVTSwapOptimizer::Impl
     CheckLaunch("DecideKernel");
   }
 
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueueCommit()
   {
@@ -1391,7 +1391,7 @@ struct CVTSwapOptimizer::Impl
   }
 
   /** Sweep path: one colour's batch, proposed, summed, decided and committed (or halting the sweep). */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueueBatch(const ColourParams & cp)
   {
@@ -1418,7 +1418,7 @@ struct CVTSwapOptimizer::Impl
 
   /** The sub-sweeps of colours first..last of a sweep (from its start when first is 0), then the state's copy to
    * the pinned host copy. */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   EnqueueSweep(unsigned int first)
   {
@@ -1482,7 +1482,7 @@ struct CVTSwapOptimizer::Impl
   }
 
   /** Captures the launches of `enqueue` into `graph` (after `dependency` when not null); false on any failure. */
-  template<typename TEnqueue>
+  template <typename TEnqueue>
   bool
   CaptureInto(cudaGraph_t graph, const cudaGraphNode_t * dependency, TEnqueue && enqueue)
   {
@@ -1523,7 +1523,7 @@ struct CVTSwapOptimizer::Impl
 
   /** A whole sweep from its start and its end: the graph when it can be had (captured once, replayed), else direct
    * launches. */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   LaunchSweep()
   {
@@ -1536,8 +1536,7 @@ struct CVTSwapOptimizer::Impl
       Instantiate(graph,
                   created && CaptureInto(graph,
                                          nullptr,
-                                         [&]
-                                         {
+                                         [&] {
                                            EnqueueSweep<D>(0);
                                            EnqueueEndSweep(nullptr);
                                          }),
@@ -1557,7 +1556,7 @@ struct CVTSwapOptimizer::Impl
 
   /** The rejected batch of colour cp, halved on the host like DiscreteCVT::CommitProposals (the first rejection
    * is already counted). */
-  template<unsigned int D>
+  template <unsigned int D>
   void
   HalveBatch(const ColourParams & cp, CVTSwapResult & result)
   {
@@ -1571,10 +1570,9 @@ struct CVTSwapOptimizer::Impl
     }
     std::vector<Proposal> host(count);
     proposals.Download(host.data(), count, stream);
-    std::sort(host.begin(),
-              host.end(),
-              [](const Proposal & a, const Proposal & b)
-              { return a.gain != b.gain ? a.gain > b.gain : a.pixel < b.pixel; });
+    std::sort(host.begin(), host.end(), [](const Proposal & a, const Proposal & b) {
+      return a.gain != b.gain ? a.gain > b.gain : a.pixel < b.pixel;
+    });
     Check(cudaMemcpyAsync(proposals.Data(), host.data(), count * sizeof(Proposal), cudaMemcpyHostToDevice, stream),
           "upload");
     for (;;)
@@ -1600,7 +1598,7 @@ struct CVTSwapOptimizer::Impl
 
   /** The loop graph for the current buffers, captured on first use: while (condition) { sweep; EndSweepKernel },
    * then the state's download. False where it cannot be had. */
-  template<unsigned int D>
+  template <unsigned int D>
   bool
   PrepareLoopGraph()
   {
@@ -1624,26 +1622,19 @@ struct CVTSwapOptimizer::Impl
       params.conditional.size = 1;
       ok = cudaGraphAddNode(&loopNode, graph, nullptr, nullptr, 0, &params) == cudaSuccess;
     }
-    ok = ok && CaptureInto(params.conditional.phGraph_out[0],
-                           nullptr,
-                           [&]
-                           {
-                             EnqueueSweep<D>(0);
-                             EnqueueEndSweep(&handle);
-                           });
-    ok = ok && CaptureInto(
-                 graph,
-                 &loopNode,
-                 [&]
-                 {
-                   Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
-                         "download state");
-                 });
+    ok = ok && CaptureInto(params.conditional.phGraph_out[0], nullptr, [&] {
+           EnqueueSweep<D>(0);
+           EnqueueEndSweep(&handle);
+         });
+    ok = ok && CaptureInto(graph, &loopNode, [&] {
+           Check(cudaMemcpyAsync(hostState, state.Data(), sizeof(SweepState), cudaMemcpyDeviceToHost, stream),
+                 "download state");
+         });
     Instantiate(graph, ok, loopGraph, loopUnavailable);
     return loopGraph != nullptr;
   }
 
-  template<unsigned int D>
+  template <unsigned int D>
   void
   Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result)
   {
@@ -1710,210 +1701,198 @@ CVTSwapOptimizer::~CVTSwapOptimizer() = default;
 Status
 CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const double * spacing)
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.dimension = 0;
+    m.hasLabels = false;
+    m.density = nullptr;
+    m.nCells = 0;
+    m.DropGraph();
+    if (dimension != 2 && dimension != 3)
     {
-      Impl & m = *m_Impl;
-      m.dimension = 0;
-      m.hasLabels = false;
-      m.density = nullptr;
-      m.nCells = 0;
-      m.DropGraph();
-      if (dimension != 2 && dimension != 3)
+      throw CudaError("CVTSwapOptimizer: the dimension must be 2 or 3");
+    }
+    size_t n = 1;
+    for (unsigned int k = 0; k < dimension; ++k)
+    {
+      if (size[k] < 1 || !(spacing[k] > 0.0))
       {
-        throw CudaError("CVTSwapOptimizer: the dimension must be 2 or 3");
+        throw CudaError("CVTSwapOptimizer: every size must be >= 1 and every spacing > 0");
       }
-      size_t n = 1;
-      for (unsigned int k = 0; k < dimension; ++k)
+      n *= size[k];
+      if (n >= (size_t{ 1 } << 31))
       {
-        if (size[k] < 1 || !(spacing[k] > 0.0))
-        {
-          throw CudaError("CVTSwapOptimizer: every size must be >= 1 and every spacing > 0");
-        }
-        n *= size[k];
-        if (n >= (size_t{ 1 } << 31))
-        {
-          throw CudaError("CVTSwapOptimizer: the grid must have fewer than 2^31 pixels");
-        }
+        throw CudaError("CVTSwapOptimizer: the grid must have fewer than 2^31 pixels");
       }
-      GridParams g{};
-      int32_t    stride = 1;
+    }
+    GridParams g{};
+    int32_t    stride = 1;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      g.size[k] = k < dimension ? static_cast<int32_t>(size[k]) : 1;
+      g.spacing[k] = k < dimension ? spacing[k] : 1.0;
+      g.stride[k] = stride;
+      stride *= g.size[k];
+    }
+    g.numberOfPixels = static_cast<int32_t>(n);
+    m.grid = g;
+    m.numberOfPixels = n;
+    m.numberOfColours = 1u << dimension;
+    m.maxColourCount = 0;
+    for (unsigned int c = 0; c < m.numberOfColours; ++c)
+    {
+      ColourParams cp{};
+      cp.colour = static_cast<int32_t>(c);
+      cp.count = 1;
       for (unsigned int k = 0; k < 3; ++k)
       {
-        g.size[k] = k < dimension ? static_cast<int32_t>(size[k]) : 1;
-        g.spacing[k] = k < dimension ? spacing[k] : 1.0;
-        g.stride[k] = stride;
-        stride *= g.size[k];
+        cp.origin[k] = k < dimension ? static_cast<int32_t>((c >> k) & 1u) : 0;
+        cp.sub[k] = g.size[k] > cp.origin[k] ? (g.size[k] - cp.origin[k] + 1) / 2 : 0;
+        cp.count *= k < dimension ? cp.sub[k] : 1;
       }
-      g.numberOfPixels = static_cast<int32_t>(n);
-      m.grid = g;
-      m.numberOfPixels = n;
-      m.numberOfColours = 1u << dimension;
-      m.maxColourCount = 0;
-      for (unsigned int c = 0; c < m.numberOfColours; ++c)
-      {
-        ColourParams cp{};
-        cp.colour = static_cast<int32_t>(c);
-        cp.count = 1;
-        for (unsigned int k = 0; k < 3; ++k)
-        {
-          cp.origin[k] = k < dimension ? static_cast<int32_t>((c >> k) & 1u) : 0;
-          cp.sub[k] = g.size[k] > cp.origin[k] ? (g.size[k] - cp.origin[k] + 1) / 2 : 0;
-          cp.count *= k < dimension ? cp.sub[k] : 1;
-        }
-        m.colours[c] = cp;
-        m.maxColourCount = std::max(m.maxColourCount, cp.count);
-      }
-      int device = 0, sms = 1;
-      Check(cudaGetDevice(&device), "cudaGetDevice");
-      Check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device), "cudaDeviceGetAttribute");
-      m.strideBlocks = 2 * sms; // grid-stride kernels: their work is known on the device only
-      if (!m.stream)
-      {
-        Check(cudaStreamCreateWithFlags(&m.stream, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
-      }
-      if (!m.hostState)
-      {
-        void * pinned = nullptr;
-        Check(cudaMallocHost(&pinned, sizeof(SweepState)), "cudaMallocHost");
-        m.hostState = static_cast<SweepState *>(pinned);
-      }
-      // DiscreteCVT's rounding guard: 1e-9 x the smallest squared pixel size
-      double h2 = g.spacing[0] * g.spacing[0];
-      for (unsigned int k = 1; k < dimension; ++k)
-      {
-        h2 = std::min(h2, g.spacing[k] * g.spacing[k]);
-      }
-      m.tolerance = 1e-9 * h2;
-      m.labels.Resize(n);
-      m.iota.Resize(n);
-      m.sortedKeys.Resize(n);
-      m.sortedPixels.Resize(n);
-      const size_t slotsNeeded = static_cast<size_t>(std::max(m.maxColourCount, 1));
-      m.proposals.Resize(slotsNeeded);
-      m.entries.Resize(2 * slotsNeeded);
-      m.entryKeys.Resize(2 * slotsNeeded);
-      m.sortedEntries.Resize(2 * slotsNeeded);
-      m.state.Resize(1);
-      IotaKernel<<<m.strideBlocks, Threads, 0, m.stream>>>(m.iota.Data(), static_cast<int32_t>(n));
-      CheckLaunch("IotaKernel");
-      Check(cudaStreamSynchronize(m.stream), "SetGrid (synchronise)");
-      m.dimension = dimension;
-    });
+      m.colours[c] = cp;
+      m.maxColourCount = std::max(m.maxColourCount, cp.count);
+    }
+    int device = 0, sms = 1;
+    Check(cudaGetDevice(&device), "cudaGetDevice");
+    Check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device), "cudaDeviceGetAttribute");
+    m.strideBlocks = 2 * sms; // grid-stride kernels: their work is known on the device only
+    if (!m.stream)
+    {
+      Check(cudaStreamCreateWithFlags(&m.stream, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
+    }
+    if (!m.hostState)
+    {
+      void * pinned = nullptr;
+      Check(cudaMallocHost(&pinned, sizeof(SweepState)), "cudaMallocHost");
+      m.hostState = static_cast<SweepState *>(pinned);
+    }
+    // DiscreteCVT's rounding guard: 1e-9 x the smallest squared pixel size
+    double h2 = g.spacing[0] * g.spacing[0];
+    for (unsigned int k = 1; k < dimension; ++k)
+    {
+      h2 = std::min(h2, g.spacing[k] * g.spacing[k]);
+    }
+    m.tolerance = 1e-9 * h2;
+    m.labels.Resize(n);
+    m.iota.Resize(n);
+    m.sortedKeys.Resize(n);
+    m.sortedPixels.Resize(n);
+    const size_t slotsNeeded = static_cast<size_t>(std::max(m.maxColourCount, 1));
+    m.proposals.Resize(slotsNeeded);
+    m.entries.Resize(2 * slotsNeeded);
+    m.entryKeys.Resize(2 * slotsNeeded);
+    m.sortedEntries.Resize(2 * slotsNeeded);
+    m.state.Resize(1);
+    IotaKernel<<<m.strideBlocks, Threads, 0, m.stream>>>(m.iota.Data(), static_cast<int32_t>(n));
+    CheckLaunch("IotaKernel");
+    Check(cudaStreamSynchronize(m.stream), "SetGrid (synchronise)");
+    m.dimension = dimension;
+  });
 }
 
 Status
 CVTSwapOptimizer::SetDensity(const float * density, bool devicePointer)
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.RequireGrid();
+    if (!density)
     {
-      Impl & m = *m_Impl;
-      m.RequireGrid();
-      if (!density)
-      {
-        throw CudaError("CVTSwapOptimizer: null density");
-      }
-      if (devicePointer)
-      {
-        m.ownDensity.Free();
-        m.density = density;
-      }
-      else
-      {
-        m.ownDensity.Upload(density, m.numberOfPixels, m.stream);
-        Check(cudaStreamSynchronize(m.stream), "upload (synchronise)");
-        m.density = m.ownDensity.Data();
-      }
-    });
+      throw CudaError("CVTSwapOptimizer: null density");
+    }
+    if (devicePointer)
+    {
+      m.ownDensity.Free();
+      m.density = density;
+    }
+    else
+    {
+      m.ownDensity.Upload(density, m.numberOfPixels, m.stream);
+      Check(cudaStreamSynchronize(m.stream), "upload (synchronise)");
+      m.density = m.ownDensity.Data();
+    }
+  });
 }
 
 Status
 CVTSwapOptimizer::SetLabels(const int32_t * labels, size_t numberOfCells, bool devicePointer)
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.RequireGrid();
+    if (!labels)
     {
-      Impl & m = *m_Impl;
-      m.RequireGrid();
-      if (!labels)
-      {
-        throw CudaError("CVTSwapOptimizer: null labels");
-      }
-      m.hasLabels = false;
-      Check(cudaMemcpyAsync(m.labels.Data(),
-                            labels,
-                            m.numberOfPixels * sizeof(int32_t),
-                            devicePointer ? cudaMemcpyDeviceToDevice : cudaMemcpyHostToDevice,
-                            m.stream),
-            "upload labels");
-      Check(cudaStreamSynchronize(m.stream), "upload labels (synchronise)");
-      m.hasLabels = true;
-      try
-      {
-        m.Recompute(numberOfCells);
-      }
-      catch (...)
-      {
-        m.hasLabels = false; // the copied labels are invalid
-        throw;
-      }
-    });
+      throw CudaError("CVTSwapOptimizer: null labels");
+    }
+    m.hasLabels = false;
+    Check(cudaMemcpyAsync(m.labels.Data(),
+                          labels,
+                          m.numberOfPixels * sizeof(int32_t),
+                          devicePointer ? cudaMemcpyDeviceToDevice : cudaMemcpyHostToDevice,
+                          m.stream),
+          "upload labels");
+    Check(cudaStreamSynchronize(m.stream), "upload labels (synchronise)");
+    m.hasLabels = true;
+    try
+    {
+      m.Recompute(numberOfCells);
+    }
+    catch (...)
+    {
+      m.hasLabels = false; // the copied labels are invalid
+      throw;
+    }
+  });
 }
 
 Status
 CVTSwapOptimizer::KeepLabels(size_t numberOfCells)
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.RequireGrid();
+    if (!m.hasLabels)
     {
-      Impl & m = *m_Impl;
-      m.RequireGrid();
-      if (!m.hasLabels)
-      {
-        throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
-      }
-      if (!m.density)
-      {
-        throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
-      }
-      m.Recompute(numberOfCells);
-    });
+      throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
+    }
+    if (!m.density)
+    {
+      throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
+    }
+    m.Recompute(numberOfCells);
+  });
 }
 
 Status
 CVTSwapOptimizer::Optimize(double epsilon, size_t maximumNumberOfSweeps, CVTSwapResult & result)
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    m.RequireCells();
+    if (m.dimension == 2)
     {
-      Impl & m = *m_Impl;
-      m.RequireCells();
-      if (m.dimension == 2)
-      {
-        m.Optimize<2>(epsilon, maximumNumberOfSweeps, result);
-      }
-      else
-      {
-        m.Optimize<3>(epsilon, maximumNumberOfSweeps, result);
-      }
-    });
+      m.Optimize<2>(epsilon, maximumNumberOfSweeps, result);
+    }
+    else
+    {
+      m.Optimize<3>(epsilon, maximumNumberOfSweeps, result);
+    }
+  });
 }
 
 Status
 CVTSwapOptimizer::DownloadLabels(int32_t * host) const
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    const Impl & m = *m_Impl;
+    m.RequireGrid();
+    if (!m.hasLabels)
     {
-      const Impl & m = *m_Impl;
-      m.RequireGrid();
-      if (!m.hasLabels)
-      {
-        throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
-      }
-      m.labels.Download(host, m.numberOfPixels, m.stream);
-    });
+      throw CudaError("CVTSwapOptimizer: no labels on the device (SetLabels)");
+    }
+    m.labels.Download(host, m.numberOfPixels, m.stream);
+  });
 }
 
 const int32_t *
@@ -1925,16 +1904,14 @@ CVTSwapOptimizer::DeviceLabels() const
 Status
 CVTSwapOptimizer::GetCells(std::vector<double> & masses, std::vector<double> & centroids) const
 {
-  return Guard(
-    [&]
-    {
-      const Impl & m = *m_Impl;
-      m.RequireCells();
-      masses.resize(m.nCells);
-      centroids.resize(m.nCells * m.dimension);
-      m.mass.Download(masses.data(), m.nCells, m.stream);
-      m.centroid.Download(centroids.data(), m.nCells * m.dimension, m.stream);
-    });
+  return Guard([&] {
+    const Impl & m = *m_Impl;
+    m.RequireCells();
+    masses.resize(m.nCells);
+    centroids.resize(m.nCells * m.dimension);
+    m.mass.Download(masses.data(), m.nCells, m.stream);
+    m.centroid.Download(centroids.data(), m.nCells * m.dimension, m.stream);
+  });
 }
 
 void

@@ -56,9 +56,9 @@ struct CVTSwapResult
  *
  * Typical use: SetGrid, SetDensity, SetLabels (e.g. from the CPU contraction), Optimize; for the next registration
  * iteration SetDensity with the new density and KeepLabels (warm start), Optimize. The work runs on the object's own
- * CUDA stream (the sweeps of an Optimize call are one replayed CUDA graph looping on the device, see SetDeviceLoop): device memory passed in must
- * hold its final values when it is passed (the producer's stream synchronised), and every call returns with its
- * work finished, so DeviceLabels() can be read by any stream afterwards. Not thread-safe. */
+ * CUDA stream (the sweeps of an Optimize call are one replayed CUDA graph looping on the device, see SetDeviceLoop):
+ * device memory passed in must hold its final values when it is passed (the producer's stream synchronised), and every
+ * call returns with its work finished, so DeviceLabels() can be read by any stream afterwards. Not thread-safe. */
 class DynamicMeshRegistration_EXPORT CVTSwapOptimizer
 {
 public:

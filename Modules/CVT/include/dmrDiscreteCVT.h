@@ -32,7 +32,8 @@ namespace itk
 namespace dmr
 {
 /** Ward cost of contracting clusters (m_i, r_i) and (m_j, r_j): paper Eq. 18,
- * m_i |r_i - r_k|^2 + m_j |r_j - r_k|^2 with r_k the merged centroid, which equals m_i m_j / (m_i + m_j) |r_i - r_j|^2. */
+ * m_i |r_i - r_k|^2 + m_j |r_j - r_k|^2 with r_k the merged centroid, which equals m_i m_j / (m_i + m_j) |r_i - r_j|^2.
+ */
 template <unsigned int D>
 inline double
 ContractionCost(double mi, const double * ri, double mj, const double * rj)
@@ -249,7 +250,7 @@ public:
     {
       double   mass;
       double   centroid[D]; // the first moment, until the blocks are summed
-      size_t   first; // its links are link[first, first + count), with room for capacity
+      size_t   first;       // its links are link[first, first + count), with room for capacity
       uint32_t count;
       uint32_t capacity;
     };

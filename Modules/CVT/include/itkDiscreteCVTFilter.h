@@ -65,7 +65,8 @@ public:
   using DensityImageType = TDensityImage;
   using LabelImageType = TLabelImage;
   using LabelType = typename LabelImageType::PixelType;
-  using SitesType = PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
+  using SitesType =
+    PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
   using BackendEnum = DynamicMeshRegistrationEnums::Backend;
   using CoreType = dmr::DiscreteCVT<ImageDimension>;
   using DataObjectPointerArraySizeType = typename Superclass::DataObjectPointerArraySizeType;
@@ -135,26 +136,26 @@ private:
   typename CoreType::OptimizeResult
   OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid);
 
-  SizeValueType m_NumberOfCells{ 2000 };
-  unsigned int  m_BlockSize{ ImageDimension == 2 ? 1u : 4u };
-  double        m_Epsilon{ 0.0 };
-  SizeValueType m_MaximumNumberOfSweeps{ 1000 };
-  BackendEnum   m_Backend{ BackendEnum::Auto };
-  BackendEnum   m_BackendUsed{ BackendEnum::CPU };
-  double        m_InitialEnergy{ 0.0 };
-  double        m_Energy{ 0.0 };
-  SizeValueType m_NumberOfSweeps{ 0 };
-  SizeValueType m_NumberOfSwaps{ 0 };
-  double        m_InitializationTime{ 0.0 };
-  double        m_OptimizationTime{ 0.0 };
-  CoreType      m_Core;
-  std::vector<float> m_DensityBuffer;
+  SizeValueType                                m_NumberOfCells{ 2000 };
+  unsigned int                                 m_BlockSize{ ImageDimension == 2 ? 1u : 4u };
+  double                                       m_Epsilon{ 0.0 };
+  SizeValueType                                m_MaximumNumberOfSweeps{ 1000 };
+  BackendEnum                                  m_Backend{ BackendEnum::Auto };
+  BackendEnum                                  m_BackendUsed{ BackendEnum::CPU };
+  double                                       m_InitialEnergy{ 0.0 };
+  double                                       m_Energy{ 0.0 };
+  SizeValueType                                m_NumberOfSweeps{ 0 };
+  SizeValueType                                m_NumberOfSwaps{ 0 };
+  double                                       m_InitializationTime{ 0.0 };
+  double                                       m_OptimizationTime{ 0.0 };
+  CoreType                                     m_Core;
+  std::vector<float>                           m_DensityBuffer;
   std::unique_ptr<dmr::cuda::CVTSwapOptimizer> m_DeviceOptimizer; // kept between updates (device allocations)
 };
 } // namespace itk
 
 #ifndef ITK_MANUAL_INSTANTIATION
-#  include "itkDiscreteCVTFilter.hxx"
+#include "itkDiscreteCVTFilter.hxx"
 #endif
 
 #endif

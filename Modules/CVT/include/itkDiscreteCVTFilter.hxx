@@ -67,7 +67,8 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
                                         << ")");
   }
   const LabelImageType * initial = this->GetInitialLabels();
-  if (initial && initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
+  if (initial &&
+      initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
   {
     itkExceptionMacro("InitialLabels must have the size of the density image");
   }

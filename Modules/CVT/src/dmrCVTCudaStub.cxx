@@ -91,7 +91,8 @@ CVTSwapOptimizer::GetCells(std::vector<double> &, std::vector<double> &) const
 
 void
 CVTSwapOptimizer::SetDeviceLoop(bool)
-{}
+{
+}
 
 double
 CVTSwapOptimizer::Energy() const

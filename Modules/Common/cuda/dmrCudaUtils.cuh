@@ -39,7 +39,8 @@ class CudaError : public std::runtime_error
 public:
   explicit CudaError(const std::string & what)
     : std::runtime_error(what)
-  {}
+  {
+  }
 };
 
 inline void
@@ -101,7 +102,8 @@ public:
   DeviceBuffer() = default;
   explicit DeviceBuffer(size_t n) { Resize(n); }
   DeviceBuffer(const DeviceBuffer &) = delete;
-  DeviceBuffer & operator=(const DeviceBuffer &) = delete;
+  DeviceBuffer &
+  operator=(const DeviceBuffer &) = delete;
   DeviceBuffer(DeviceBuffer && other) noexcept
     : m_Data(other.m_Data)
     , m_Size(other.m_Size)

@@ -58,11 +58,11 @@ DeviceAvailable();
 
 /** Why DeviceAvailable() is false (empty when it is true). */
 DynamicMeshRegistration_EXPORT std::string
-UnavailableReason();
+                               UnavailableReason();
 
 /** One-line description of the device (name, memory), or the reason it is unavailable. */
 DynamicMeshRegistration_EXPORT std::string
-DeviceDescription();
+                               DeviceDescription();
 
 /** Creates the device's primary context now (it is otherwise created by the first launcher call, which then takes
  * about 0.1 s longer). Thread-safe: the registration calls it on a helper thread while the host prepares its data. */

@@ -40,7 +40,7 @@ namespace dmr
 template <unsigned int VDimension>
 struct Grid
 {
-  static constexpr unsigned int Dimension = VDimension;
+  static constexpr unsigned int  Dimension = VDimension;
   std::array<size_t, VDimension> size{};
   std::array<size_t, VDimension> stride{};
   std::array<double, VDimension> spacing{};

@@ -35,7 +35,7 @@ using InsideFunction = std::function<bool(double x, double y)>;
 inline ShapeImageType::Pointer
 RenderShape(unsigned int width, unsigned int height, const InsideFunction & inside)
 {
-  auto                    image = ShapeImageType::New();
+  auto                     image = ShapeImageType::New();
   ShapeImageType::SizeType size = { { width, height } };
   image->SetRegions(size);
   image->Allocate();

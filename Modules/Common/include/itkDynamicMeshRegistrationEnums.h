@@ -64,9 +64,9 @@ public:
 extern DynamicMeshRegistration_EXPORT std::ostream &
                                       operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::Backend value);
 extern DynamicMeshRegistration_EXPORT std::ostream &
-                                      operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::MeshMode value);
+operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::MeshMode value);
 extern DynamicMeshRegistration_EXPORT std::ostream &
-                                      operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::ForceGradient value);
+operator<<(std::ostream & out, const DynamicMeshRegistrationEnums::ForceGradient value);
 } // namespace itk
 
 #endif

@@ -44,7 +44,7 @@ namespace dmr
 /** What GaussianShrink computes, without computing it: the output's geometry (ShrinkImageFilter's output information
  * and region, no buffer) and, per axis, the kept input positions and the Gaussian coefficients. The GPU back-end runs
  * the same passes from it (dmr::cuda::RegistrationContext::Initialize). */
-template<unsigned int D>
+template <unsigned int D>
 struct GaussianShrinkPlan
 {
   typename Image<float, D>::Pointer   output;      // information and largest region only
@@ -54,7 +54,7 @@ struct GaussianShrinkPlan
   std::array<std::vector<double>, D>  coefficients; // per axis: GaussianOperator<double>, 2 r + 1 of them
 };
 
-template<unsigned int D, typename TImage>
+template <unsigned int D, typename TImage>
 GaussianShrinkPlan<D>
 PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKernelWidth, const unsigned int * factors)
 {
@@ -110,7 +110,7 @@ PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKe
   return plan;
 }
 
-template<unsigned int D>
+template <unsigned int D>
 typename Image<float, D>::Pointer
 GaussianShrink(const Image<float, D> * image,
                double                  variance,
@@ -162,8 +162,7 @@ GaussianShrink(const Image<float, D> * image,
       ParallelForChunks(
         threader,
         static_cast<size_t>(above),
-        [&](size_t begin, size_t end)
-        {
+        [&](size_t begin, size_t end) {
           for (size_t a = begin; a < end; ++a)
           {
             const float * in = source + static_cast<int64_t>(a) * length;
@@ -190,8 +189,7 @@ GaussianShrink(const Image<float, D> * image,
       ParallelForChunks(
         threader,
         static_cast<size_t>(above * outLength),
-        [&](size_t begin, size_t end)
-        {
+        [&](size_t begin, size_t end) {
           std::vector<double> sum(static_cast<size_t>(stride));
           for (size_t task = begin; task < end; ++task)
           {

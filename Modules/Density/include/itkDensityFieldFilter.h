@@ -209,29 +209,29 @@ private:
   void
   BuildPyramids(bool complete);
 
-  unsigned int m_NumberOfLevels{ 3 };
-  double       m_AlphaFactor{ 0.1 };
+  unsigned int      m_NumberOfLevels{ 3 };
+  double            m_AlphaFactor{ 0.1 };
   ForceGradientEnum m_ForceGradient{ ForceGradientEnum::WarpedMoving };
-  bool         m_UseFixedAlpha{ false };
-  bool         m_ComputeForceField{ true };
-  double       m_Alpha{ 0.0 };
-  double       m_MSSD{ 0.0 };
-  double       m_SSD{ 0.0 };
-  double       m_MeanSquaredForce{ 0.0 };
+  bool              m_UseFixedAlpha{ false };
+  bool              m_ComputeForceField{ true };
+  double            m_Alpha{ 0.0 };
+  double            m_MSSD{ 0.0 };
+  double            m_SSD{ 0.0 };
+  double            m_MeanSquaredForce{ 0.0 };
 
   std::vector<PyramidLevel> m_Levels;
-  ModifiedTimeType   m_PyramidTime{ 0 };
-  unsigned int       m_PyramidLevels{ 0 };
-  bool               m_PyramidComplete{ false }; // every level holds its images and moving gradient
-  const void *       m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
-  const void *       m_PyramidMoving{ nullptr };
-  double             m_IntensityRange{ 0.0 };
-  std::vector<float> m_GridForce;
+  ModifiedTimeType          m_PyramidTime{ 0 };
+  unsigned int              m_PyramidLevels{ 0 };
+  bool                      m_PyramidComplete{ false }; // every level holds its images and moving gradient
+  const void *              m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
+  const void *              m_PyramidMoving{ nullptr };
+  double                    m_IntensityRange{ 0.0 };
+  std::vector<float>        m_GridForce;
 };
 } // namespace itk
 
 #ifndef ITK_MANUAL_INSTANTIATION
-#  include "itkDensityFieldFilter.hxx"
+#include "itkDensityFieldFilter.hxx"
 #endif
 
 #endif

@@ -71,7 +71,7 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyPreconditions() ITKv5_CONST
     if (fixedSize[k] < 2)
     {
       itkExceptionMacro("the fixed image must have at least 2 pixels along every axis, axis " << k << " has "
-                                                                                               << fixedSize[k]);
+                                                                                              << fixedSize[k]);
     }
   }
   const DisplacementFieldType * field = this->GetDisplacementField();
@@ -141,11 +141,11 @@ CopyToFloat(const TImage * image, std::vector<float> & out)
  * out = R * grad. */
 template <unsigned int D>
 void
-GradientInto(MultiThreaderBase *       threader,
-             const Grid<D> &           grid,
+GradientInto(MultiThreaderBase *        threader,
+             const Grid<D> &            grid,
              const std::vector<float> & image,
              const double (&R)[D][D],
-             std::vector<float> &      out)
+             std::vector<float> & out)
 {
   out.assign(grid.numberOfPixels * D, 0.0f);
   ParallelForChunks(threader, grid.numberOfPixels, [&](size_t begin, size_t end) {
@@ -179,11 +179,11 @@ GradientInto(MultiThreaderBase *       threader,
  * on the grid (nullptr: identity), rotated into the grid frame by the direction matrix. */
 template <unsigned int D, typename TVector, typename TDirection>
 inline void
-WarpJacobianTranspose(const Grid<D> &         grid,
+WarpJacobianTranspose(const Grid<D> &                grid,
                       const std::array<int64_t, D> & idx,
-                      size_t                  p,
-                      const TVector *         u,
-                      const TDirection &      direction,
+                      size_t                         p,
+                      const TVector *                u,
+                      const TDirection &             direction,
                       double (&Jt)[D][D])
 {
   for (unsigned int j = 0; j < D; ++j)
@@ -225,7 +225,7 @@ void
 IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D][D], double (&c0)[D])
 {
   using IndexType = typename TRef::IndexType;
-  IndexType start = ref->GetLargestPossibleRegion().GetIndex();
+  IndexType                start = ref->GetLargestPossibleRegion().GetIndex();
   typename TRef::PointType p0;
   ref->TransformIndexToPhysicalPoint(start, p0);
   const auto ci0 = other->template TransformPhysicalPointToContinuousIndex<double, double>(p0);
@@ -248,7 +248,7 @@ IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D]
 }
 } // namespace dmr
 
-template<typename TF, typename TM, typename TD, typename TO>
+template <typename TF, typename TM, typename TD, typename TO>
 void
 DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
 {
@@ -293,8 +293,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
   // level l: ShrinkImageFilter(DiscreteGaussianImageFilter(image)) with sigma = 0.5 x shrink factor pixels, as ITK's
   // pyramids, computed only where the shrink keeps it (dmr::GaussianShrink: the same floats). Incomplete: the plan
   // only (geometry, kept positions, coefficients), for the GPU back-end to run.
-  auto shrinkOf = [](const auto * image, unsigned int level, unsigned int * factors)
-  {
+  auto shrinkOf = [](const auto * image, unsigned int level, unsigned int * factors) {
     const unsigned int factor = 1u << level;
     for (unsigned int k = 0; k < ImageDimension; ++k)
     {
@@ -417,15 +416,15 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   }
   m_GridForce.resize(n * D);
 
-  const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
+  const auto *          fieldBuffer = field ? field->GetBufferPointer() : nullptr;
   const MaskImageType * maskImage = this->GetFixedMask();
   const auto *          maskBuffer = maskImage ? maskImage->GetBufferPointer() : nullptr;
-  auto *       densityBuffer = density->GetBufferPointer();
-  auto *       forceBuffer = m_ComputeForceField ? force->GetBufferPointer() : nullptr;
-  float *      gridForce = m_GridForce.data();
-  const auto * levels = m_Levels.data();
-  const unsigned int nLevels = m_NumberOfLevels;
-  const bool         warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
+  auto *                densityBuffer = density->GetBufferPointer();
+  auto *                forceBuffer = m_ComputeForceField ? force->GetBufferPointer() : nullptr;
+  float *               gridForce = m_GridForce.data();
+  const auto *          levels = m_Levels.data();
+  const unsigned int    nLevels = m_NumberOfLevels;
+  const bool            warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
   // Eq. 3 sums level i over the pixels of level i. Evaluated at the fine pixels, each fine pixel stands for
   // (pixels of level i) / (fine pixels) of them.
   std::vector<double> levelWeight(nLevels);
@@ -440,9 +439,9 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
     double mssd{ 0 }, ssd{ 0 }, f2{ 0 };
     size_t inside{ 0 };
   };
-  const size_t          chunk = std::max<size_t>(4096, n / 64 + 1);
-  const size_t          nChunks = (n + chunk - 1) / chunk;
-  std::vector<Partial>  partial(nChunks);
+  const size_t         chunk = std::max<size_t>(4096, n / 64 + 1);
+  const size_t         nChunks = (n + chunk - 1) / chunk;
+  std::vector<Partial> partial(nChunks);
   dmr::ParallelForChunks(
     this->GetMultiThreader(),
     nChunks,
@@ -484,7 +483,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
           for (unsigned int l = 0; l < nLevels; ++l)
           {
             const PyramidLevel & L = levels[l];
-            double        cf[D], cm[D];
+            double               cf[D], cm[D];
             for (unsigned int r = 0; r < D; ++r)
             {
               cf[r] = L.Fc[r];
@@ -604,7 +603,7 @@ DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType 
     itkExceptionMacro("WarpMovingImage needs the pyramids: call Update() first");
   }
   const PyramidLevel & L = m_Levels[0];
-  const GridType grid = m_Levels[0].fixedGrid;
+  const GridType       grid = m_Levels[0].fixedGrid;
   out.resize(grid.numberOfPixels);
   const auto * fieldBuffer = field ? field->GetBufferPointer() : nullptr;
   dmr::ParallelForChunks(this->GetMultiThreader(), grid.numberOfPixels, [&](size_t b, size_t e) {

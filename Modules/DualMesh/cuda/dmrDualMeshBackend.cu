@@ -515,8 +515,7 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
   border.faceStats = stats.Data() + cellValues;
   border.edgeStats = stats.Data() + cellValues + faceValues;
   long long maxBorderItems = 0;
-  auto      addPart = [&](BorderPart b)
-  {
+  auto      addPart = [&](BorderPart b) {
     if (b.countA <= 0 || b.countB <= 0)
     {
       return;
@@ -748,13 +747,11 @@ LabelSummarizer::UploadLabels(const int32_t * hostLabels, size_t numberOfPixels)
   {
     return Status::Error("label upload: no labels");
   }
-  return Guard(
-    [&]
-    {
-      m_Impl->uploaded.Reserve(std::max<size_t>(numberOfPixels, 1));
-      m_Impl->uploaded.Upload(hostLabels, numberOfPixels);
-      Check(cudaStreamSynchronize(nullptr), "label upload");
-    });
+  return Guard([&] {
+    m_Impl->uploaded.Reserve(std::max<size_t>(numberOfPixels, 1));
+    m_Impl->uploaded.Upload(hostLabels, numberOfPixels);
+    Check(cudaStreamSynchronize(nullptr), "label upload");
+  });
 }
 
 const int32_t *

@@ -34,9 +34,9 @@ namespace dmr
  * at a position. Triangles are counter-clockwise; there are no degenerate ones.
  * Returns the number of constraints skipped. (CGAL stays out of every public header: this is the only interface.) */
 DynamicMeshRegistration_EXPORT std::size_t
-ConstrainedDelaunay2D(const std::vector<double> &                 xy,
-                      const std::vector<std::array<int32_t, 2>> & constraints,
-                      std::vector<std::array<int32_t, 3>> &       triangles);
+                               ConstrainedDelaunay2D(const std::vector<double> &                 xy,
+                                                     const std::vector<std::array<int32_t, 2>> & constraints,
+                                                     std::vector<std::array<int32_t, 3>> &       triangles);
 
 /** A "high fidelity" mesh (paper 5.2, Fig. 5b): the closed polygons (x, y interleaved, each resampled to a common
  * spacing) inserted as constraints together with the rectangle [0,width] x [0,height], then refined by CGAL's
@@ -46,7 +46,7 @@ DynamicMeshRegistration_EXPORT void
 ContourFidelityMesh2D(const std::vector<std::vector<double>> & polygons,
                       double                                   width,
                       double                                   height,
-                      std::size_t                                   targetNodes,
+                      std::size_t                              targetNodes,
                       std::vector<double> &                    nodesXY,
                       std::vector<std::array<int32_t, 3>> &    triangles);
 } // namespace dmr

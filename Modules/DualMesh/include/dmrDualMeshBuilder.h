@@ -42,7 +42,7 @@ namespace dmr
 /** Summary of a label image with labels 0..numberOfCells-1 (see LabelSummary). Parallel over rows through the
  * threader (nullptr: serial); deterministic (integer sums, sorted pairs) whatever the number of work units. Throws an
  * itk::ExceptionObject for a label outside [0, numberOfCells). */
-template<unsigned int D, typename TLabel>
+template <unsigned int D, typename TLabel>
 LabelSummary
 SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCells, MultiThreaderBase * threader)
 {
@@ -71,14 +71,12 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
   const size_t       workUnits = threader ? std::max<size_t>(1, threader->GetNumberOfWorkUnits()) : 1;
   const size_t       nChunks = std::min<size_t>(nRows, workUnits);
   std::vector<Chunk> chunks(nChunks);
-  auto               scanRows = [&](size_t chunkId)
-  {
+  auto               scanRows = [&](size_t chunkId) {
     Chunk & chunk = chunks[chunkId];
     chunk.stats.assign((D + 1) * numberOfCells, 0);
     constexpr unsigned int cacheBits = 14;
     std::vector<uint64_t>  cache(size_t{ 1 } << cacheBits, ~uint64_t{ 0 });
-    auto                   addPair = [&](uint64_t key)
-    {
+    auto                   addPair = [&](uint64_t key) {
       uint64_t & slot = cache[(key * 0x9e3779b97f4a7c15ULL) >> (64 - cacheBits)];
       if (slot != key)
       {
@@ -210,7 +208,7 @@ SummarizeLabels(const Grid<D> & grid, const TLabel * labels, size_t numberOfCell
 /** The 2^D image corners (grid frame) in the order of LabelSummary::cornerLabels: first(cell, x) for the first corner
  * a cell holds (the cell's node goes there), extra(x) for each further corner of a cell that already has one (an
  * extra node). */
-template<unsigned int D, typename TFirst, typename TExtra>
+template <unsigned int D, typename TFirst, typename TExtra>
 void
 ForEachImageCorner(const Grid<D> & grid, const LabelSummary & summary, TFirst && first, TExtra && extra)
 {
@@ -239,7 +237,7 @@ ForEachImageCorner(const Grid<D> & grid, const LabelSummary & summary, TFirst &&
 /** Number of node pairs (a, b) that are not an edge of any element. Linear time: the elements around every node (an
  * incidence list), and for the pairs of one node (the summary's pairs come grouped by their smaller node) its mesh
  * neighbours are stamped once. */
-template<size_t VVertices>
+template <size_t VVertices>
 size_t
 CountEdgesNotInMesh(const std::vector<std::array<int32_t, 2>> &         pairs,
                     const std::vector<std::array<int32_t, VVertices>> & elements)
@@ -293,7 +291,7 @@ struct DualMeshStatistics
 
 /** Compacts the used nodes, orients the elements, marks the border nodes and checks that the elements tile the
  * box. */
-template<unsigned int D>
+template <unsigned int D>
 SimplexMesh<D>
 CompactDualMesh(const Grid<D> &                                 grid,
                 const std::vector<double> &                     nodes,
@@ -342,7 +340,7 @@ CompactDualMesh(const Grid<D> &                                 grid,
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
  * Throws an itk::ExceptionObject for a cell without voxels, a summary of another grid, a 3D grid thinner than 2
  * voxels, or a mesh that does not tile the box. */
-template<unsigned int D>
+template <unsigned int D>
 SimplexMesh<D>
 BuildDualMesh(const Grid<D> &      grid,
               const LabelSummary & summary,
@@ -386,8 +384,7 @@ BuildDualMesh(const Grid<D> &      grid,
   {
     hi[k] = static_cast<double>(grid.size[k] - 1) * grid.spacing[k];
   }
-  auto innerNode = [&](size_t c, double * x)
-  {
+  auto innerNode = [&](size_t c, double * x) {
     for (unsigned int k = 0; k < D; ++k)
     {
       x[k] = sitesGridFrame ? sitesGridFrame[c * D + k]
@@ -435,8 +432,7 @@ BuildDualMesh(const Grid<D> &      grid,
     ForEachImageCorner<D>(
       grid,
       summary,
-      [&](size_t c, const double * x)
-      {
+      [&](size_t c, const double * x) {
         kind[c] = 2;
         std::copy(x, x + D, &nodes[c * D]);
       },
@@ -507,13 +503,11 @@ BuildDualMesh(const Grid<D> &      grid,
     ForEachImageCorner<D>(
       grid,
       summary,
-      [&](size_t c, const double * x)
-      {
+      [&](size_t c, const double * x) {
         std::copy(x, x + D, &nodes[c * D]);
         freeAxes[c] = 0;
       },
-      [&](const double * x)
-      {
+      [&](const double * x) {
         nodes.insert(nodes.end(), x, x + D);
         freeAxes.push_back(0);
       });

@@ -72,9 +72,10 @@ namespace itk
  * (2015) 141-150, doi:10.1016/j.cad.2014.08.009.
  * \ingroup DynamicMeshRegistration */
 template <typename TLabelImage,
-          typename TOutputMesh = Mesh<double,
-                                      TLabelImage::ImageDimension,
-                                      DefaultStaticMeshTraits<double, TLabelImage::ImageDimension, TLabelImage::ImageDimension, double>>>
+          typename TOutputMesh =
+            Mesh<double,
+                 TLabelImage::ImageDimension,
+                 DefaultStaticMeshTraits<double, TLabelImage::ImageDimension, TLabelImage::ImageDimension, double>>>
 class ITK_TEMPLATE_EXPORT DualMeshFilter : public ImageToMeshFilter<TLabelImage, TOutputMesh>
 {
 public:
@@ -89,7 +90,8 @@ public:
   static constexpr unsigned int ImageDimension = TLabelImage::ImageDimension;
   using LabelImageType = TLabelImage;
   using MeshType = TOutputMesh;
-  using SitesType = PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
+  using SitesType =
+    PointSet<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double, double>>;
   using SimplexMeshType = dmr::SimplexMesh<ImageDimension>;
 
   using Superclass::SetInput;
@@ -137,7 +139,8 @@ protected:
   PrintSelf(std::ostream & os, Indent indent) const override;
   void
   GenerateOutputInformation() override
-  {}
+  {
+  }
   void
   GenerateInputRequestedRegion() override;
   void
@@ -155,7 +158,7 @@ private:
 } // namespace itk
 
 #ifndef ITK_MANUAL_INSTANTIATION
-#  include "itkDualMeshFilter.hxx"
+#include "itkDualMeshFilter.hxx"
 #endif
 
 #endif

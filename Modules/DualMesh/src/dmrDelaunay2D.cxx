@@ -34,8 +34,8 @@ using VertexBase = CGAL::Triangulation_vertex_base_with_info_2<int32_t, Kernel>;
 using FaceBase = CGAL::Constrained_triangulation_face_base_2<Kernel>;
 using DataStructure = CGAL::Triangulation_data_structure_2<VertexBase, FaceBase>;
 using CDT = CGAL::Constrained_Delaunay_triangulation_2<Kernel,
-                                                      DataStructure,
-                                                      CGAL::No_constraint_intersection_requiring_constructions_tag>;
+                                                       DataStructure,
+                                                       CGAL::No_constraint_intersection_requiring_constructions_tag>;
 using Point = Kernel::Point_2;
 using Segment = Kernel::Segment_2;
 } // namespace
@@ -45,10 +45,10 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
                       const std::vector<std::array<int32_t, 2>> & constraints,
                       std::vector<std::array<int32_t, 3>> &       triangles)
 {
-  CDT                              cdt;
-  const size_t                     n = xy.size() / 2;
-  std::vector<int32_t>             merged(n);
-  std::vector<CDT::Vertex_handle>  handle(n);
+  CDT                             cdt;
+  const size_t                    n = xy.size() / 2;
+  std::vector<int32_t>            merged(n);
+  std::vector<CDT::Vertex_handle> handle(n);
   for (size_t i = 0; i < n; ++i)
   {
     const size_t before = cdt.number_of_vertices();
@@ -70,10 +70,11 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
       ++skipped;
       continue;
     }
-    const Point   pa(xy[2 * a], xy[2 * a + 1]), pb(xy[2 * b], xy[2 * b + 1]);
-    const Segment s(pa, pb);
-    const std::array<double, 4> box{ std::min(pa.x(), pb.x()), std::max(pa.x(), pb.x()),
-                                     std::min(pa.y(), pb.y()), std::max(pa.y(), pb.y()) };
+    const Point                 pa(xy[2 * a], xy[2 * a + 1]), pb(xy[2 * b], xy[2 * b + 1]);
+    const Segment               s(pa, pb);
+    const std::array<double, 4> box{
+      std::min(pa.x(), pb.x()), std::max(pa.x(), pb.x()), std::min(pa.y(), pb.y()), std::max(pa.y(), pb.y())
+    };
     bool crosses = false;
     for (size_t k = 0; k < accepted.size() && !crosses; ++k)
     {

@@ -36,11 +36,9 @@ FirstAtSamePosition(const std::vector<double> & xyz)
   const size_t         n = xyz.size() / 3;
   std::vector<int32_t> order(n);
   std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(),
-                   order.end(),
-                   [&](int32_t a, int32_t b) {
-                     return std::lexicographical_compare(&xyz[3 * a], &xyz[3 * a] + 3, &xyz[3 * b], &xyz[3 * b] + 3);
-                   });
+  std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) {
+    return std::lexicographical_compare(&xyz[3 * a], &xyz[3 * a] + 3, &xyz[3 * b], &xyz[3 * b] + 3);
+  });
   std::vector<int32_t> first(n);
   for (size_t k = 0; k < n; ++k)
   {
@@ -64,15 +62,13 @@ SplitMix64(uint64_t x)
 bool
 SpansSpace(const std::vector<double> & xyz, const std::vector<int32_t> & nodes)
 {
-  auto sub = [&](int32_t a, int32_t b, double(&d)[3])
-  {
+  auto sub = [&](int32_t a, int32_t b, double(&d)[3]) {
     for (unsigned int k = 0; k < 3; ++k)
     {
       d[k] = xyz[3 * a + k] - xyz[3 * b + k];
     }
   };
-  auto cross = [](const double(&u)[3], const double(&v)[3], double(&w)[3])
-  {
+  auto cross = [](const double(&u)[3], const double(&v)[3], double(&w)[3]) {
     w[0] = u[1] * v[2] - u[2] * v[1];
     w[1] = u[2] * v[0] - u[0] * v[2];
     w[2] = u[0] * v[1] - u[1] * v[0];

@@ -72,11 +72,7 @@ Resample(const std::vector<double> & poly, double step)
 }
 
 void
-Mesh(const std::vector<std::vector<double>> & polygons,
-     double                                   width,
-     double                                   height,
-     double                                   step,
-     CDT &                                    cdt)
+Mesh(const std::vector<std::vector<double>> & polygons, double width, double height, double step, CDT & cdt)
 {
   cdt.clear();
   const Point corners[4] = { Point(0, 0), Point(width, 0), Point(width, height), Point(0, height) };

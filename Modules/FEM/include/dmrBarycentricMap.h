@@ -59,7 +59,7 @@ public:
     const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 4));
     const size_t chunk = (nElements + nChunks - 1) / nChunks;
     // per-element inverse edge matrix and first vertex, computed once (the weights pass reads them again)
-    constexpr size_t  affineSize = D * D + D;
+    constexpr size_t    affineSize = D * D + D;
     std::vector<double> affine(nElements * affineSize);
     ParallelForChunkIds(threader, nChunks, [&](size_t c) {
       const size_t end = std::min(nElements, (c + 1) * chunk);
@@ -174,7 +174,7 @@ public:
           continue;
         }
         m_Element[p] = e;
-        double inv[D][D], x0[D];
+        double         inv[D][D], x0[D];
         const double * a = affine.data() + e * affineSize;
         std::copy(a, a + D * D, &inv[0][0]);
         std::copy(a + D * D, a + affineSize, x0);
@@ -211,7 +211,12 @@ public:
    * affine[0 .. D*D+D), and the pixel bounding box [lo, hi] (empty: lo[0] > hi[0]). Shared with the CUDA back-end so
    * both rasterise from the same numbers. */
   static void
-  ElementAffine(const Grid<D> & grid, const SimplexMesh<D> & mesh, size_t e, double * affine, int64_t * lo, int64_t * hi)
+  ElementAffine(const Grid<D> &        grid,
+                const SimplexMesh<D> & mesh,
+                size_t                 e,
+                double *               affine,
+                int64_t *              lo,
+                int64_t *              hi)
   {
     double inv[D][D], x0[D];
     mesh.EdgeMatrix(e, x0, &inv);
@@ -252,10 +257,10 @@ public:
   void
   Gather(const float * field, double scale, std::vector<double> & nodal, MultiThreaderBase * threader) const
   {
-    const size_t nNodes = m_Mesh->NumberOfNodes();
-    const size_t n = m_Grid.numberOfPixels;
-    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(32, n / 8192));
-    const size_t chunk = (n + nChunks - 1) / nChunks;
+    const size_t                     nNodes = m_Mesh->NumberOfNodes();
+    const size_t                     n = m_Grid.numberOfPixels;
+    const size_t                     nChunks = std::max<size_t>(1, std::min<size_t>(32, n / 8192));
+    const size_t                     chunk = (n + nChunks - 1) / nChunks;
     std::vector<std::vector<double>> partial(nChunks);
     ParallelForChunkIds(threader, nChunks, [&](size_t c) {
       auto & acc = partial[c];

@@ -138,9 +138,10 @@ template <unsigned int D>
 std::pair<double, double>
 JacobianDeterminant(const Grid<D> & grid, const float * u, float * jac, MultiThreaderBase * threader)
 {
-  const size_t                         nChunks = 64;
-  std::vector<std::pair<double, double>> partial(nChunks, { std::numeric_limits<double>::max(), -std::numeric_limits<double>::max() });
-  const size_t                         chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  const size_t                           nChunks = 64;
+  std::vector<std::pair<double, double>> partial(
+    nChunks, { std::numeric_limits<double>::max(), -std::numeric_limits<double>::max() });
+  const size_t chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
   ParallelForChunkIds(threader, nChunks, [&](size_t c) {
     const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
     auto &       mm = partial[c];

@@ -39,9 +39,9 @@ namespace dmr
 template <unsigned int D>
 struct SimplexMesh
 {
-  std::vector<double>                    nodes;    // D interleaved
+  std::vector<double>                     nodes; // D interleaved
   std::vector<std::array<int32_t, D + 1>> elements;
-  std::vector<uint8_t>                   fixed;
+  std::vector<uint8_t>                    fixed;
 
   size_t
   NumberOfNodes() const
@@ -144,9 +144,9 @@ struct SimplexMesh
 template <size_t VVertices, typename TIndex>
 void
 ElementsAroundNodes(const std::vector<std::array<int32_t, VVertices>> & elements,
-                    size_t                                             nNodes,
-                    std::vector<TIndex> &                              start,
-                    std::vector<TIndex> &                              incident)
+                    size_t                                              nNodes,
+                    std::vector<TIndex> &                               start,
+                    std::vector<TIndex> &                               incident)
 {
   start.assign(nNodes + 1, 0);
   for (const auto & e : elements)
@@ -177,8 +177,8 @@ template <unsigned int D>
 SimplexMesh<D>
 MakeRegularMesh(const Grid<D> & grid, const std::array<size_t, D> & nodesPerAxis)
 {
-  SimplexMesh<D> mesh;
-  size_t         count = 1;
+  SimplexMesh<D>        mesh;
+  size_t                count = 1;
   std::array<size_t, D> stride;
   for (unsigned int k = 0; k < D; ++k)
   {
@@ -293,8 +293,7 @@ typename TMesh::Pointer
 ToItkMesh(const SimplexMesh<D> & in, const TImage * image)
 {
   using CellType = typename TMesh::CellType;
-  using SimplexCellType =
-    std::conditional_t<D == 2, TriangleCell<CellType>, TetrahedronCell<CellType>>;
+  using SimplexCellType = std::conditional_t<D == 2, TriangleCell<CellType>, TetrahedronCell<CellType>>;
   auto         mesh = TMesh::New();
   const auto   start = image->GetLargestPossibleRegion().GetIndex();
   const auto & spacing = image->GetSpacing();

@@ -33,10 +33,10 @@ namespace itk
  * \brief P1 (linear simplex) isotropic linear-elastic stiffness and sparse solve, boundary nodes fixed.
  *
  * Discretises the Navier-Lame operator of paper Eq. 4 on a triangle/tetrahedron mesh in the grid frame (mm):
- * K[(a,i),(b,j)] = sum_e V_e (lambda d_i phi_a d_j phi_b + mu d_j phi_a d_i phi_b + mu delta_ij grad phi_a . grad phi_b),
- * i.e. the bilinear form of lambda div u div v + 2 mu eps(u):eps(v). Nodes flagged fixed (the image border) have
- * u = 0 (paper 3): their degrees of freedom are eliminated, which leaves K symmetric positive definite. Solve() uses
- * conjugate gradients with a diagonal preconditioner (ITK's bundled Eigen) to a relative residual of Tolerance
+ * K[(a,i),(b,j)] = sum_e V_e (lambda d_i phi_a d_j phi_b + mu d_j phi_a d_i phi_b + mu delta_ij grad phi_a . grad
+ * phi_b), i.e. the bilinear form of lambda div u div v + 2 mu eps(u):eps(v). Nodes flagged fixed (the image border)
+ * have u = 0 (paper 3): their degrees of freedom are eliminated, which leaves K symmetric positive definite. Solve()
+ * uses conjugate gradients with a diagonal preconditioner (ITK's bundled Eigen) to a relative residual of Tolerance
  * (default 1e-12), warm-started from the previous solution when the system size is unchanged; it falls back to an
  * exact sparse LDL^T factorisation if CG does not converge. For the 3D meshes of the paper (3000 nodes) this is about
  * 20x faster than factorising every new mesh, and the dynamic mesh changes every iteration.
@@ -103,26 +103,26 @@ protected:
   PrintSelf(std::ostream & os, Indent indent) const override;
 
 private:
-  double                 m_Lambda{ 1.0 };
-  double                 m_Mu{ 1.0 };
-  SizeValueType          m_NumberOfFreeNodes{ 0 };
-  const MeshType *       m_Mesh{ nullptr };
-  double                 m_AssembledLambda{ 0.0 };
-  double                 m_AssembledMu{ 0.0 };
-  SparseMatrixType       m_K;
-  std::vector<int64_t>   m_FreeIndex; // dof -> index in the reduced system, -1 when fixed
+  double               m_Lambda{ 1.0 };
+  double               m_Mu{ 1.0 };
+  SizeValueType        m_NumberOfFreeNodes{ 0 };
+  const MeshType *     m_Mesh{ nullptr };
+  double               m_AssembledLambda{ 0.0 };
+  double               m_AssembledMu{ 0.0 };
+  SparseMatrixType     m_K;
+  std::vector<int64_t> m_FreeIndex; // dof -> index in the reduced system, -1 when fixed
   using ConjugateGradientType = Eigen::ConjugateGradient<SparseMatrixType, Eigen::Lower | Eigen::Upper>;
-  double                                                    m_Tolerance{ 1e-12 };
-  SparseMatrixType                                          m_Kf; // reduced to the free degrees of freedom
-  std::unique_ptr<ConjugateGradientType>                    m_CG;
+  double                                                           m_Tolerance{ 1e-12 };
+  SparseMatrixType                                                 m_Kf; // reduced to the free degrees of freedom
+  std::unique_ptr<ConjugateGradientType>                           m_CG;
   mutable std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;
-  mutable Eigen::VectorXd                                   m_Warm;
-  mutable SizeValueType                                     m_LastIterations{ 0 };
+  mutable Eigen::VectorXd                                          m_Warm;
+  mutable SizeValueType                                            m_LastIterations{ 0 };
 };
 } // namespace itk
 
 #ifndef ITK_MANUAL_INSTANTIATION
-#  include "itkLinearElasticFEMSolver.hxx"
+#include "itkLinearElasticFEMSolver.hxx"
 #endif
 
 #endif

@@ -29,7 +29,7 @@ LinearElasticFEMSolver<D>::ElementStiffness(const MeshType & mesh, size_t elemen
 {
   constexpr unsigned int NV = D + 1;
   // gradients of the barycentric shape functions: rows of J^-1 for phi_1..phi_D, phi_0 = -(sum)
-  double x0[D], inv[D][D];
+  double       x0[D], inv[D][D];
   const double det = mesh.EdgeMatrix(element, x0, &inv);
   const double volume = std::abs(det) / (D == 2 ? 2.0 : 6.0);
   double       g[NV][D];
@@ -135,8 +135,9 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
       for (unsigned int a = 0; a < NV; ++a)
       {
         const int64_t na = static_cast<int64_t>(mesh.elements[e][a]);
-        const int64_t q = std::lower_bound(pattern.begin() + patternStart[nb], pattern.begin() + patternStart[nb + 1], na) -
-                          (pattern.begin() + patternStart[nb]);
+        const int64_t q =
+          std::lower_bound(pattern.begin() + patternStart[nb], pattern.begin() + patternStart[nb + 1], na) -
+          (pattern.begin() + patternStart[nb]);
         for (unsigned int j = 0; j < D; ++j)
         {
           double * column = value + outer[nb * D + j] + q * D;
@@ -177,9 +178,9 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
   }
   m_Kf.resize(nFree, nFree);
   m_Kf.resizeNonZeros(static_cast<Eigen::Index>(freeNonZeros));
-  auto * fOuter = m_Kf.outerIndexPtr();
-  auto * fInner = m_Kf.innerIndexPtr();
-  auto * fValue = m_Kf.valuePtr();
+  auto *                                  fOuter = m_Kf.outerIndexPtr();
+  auto *                                  fInner = m_Kf.innerIndexPtr();
+  auto *                                  fValue = m_Kf.valuePtr();
   typename SparseMatrixType::StorageIndex position = 0;
   fOuter[0] = 0;
   for (size_t c = 0; c < nDof; ++c)

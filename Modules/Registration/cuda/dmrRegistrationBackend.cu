@@ -84,7 +84,12 @@ IndexOf(const DeviceGrid & g, long long p, int * idx)
 /** dmr::InterpolateAdd on the device: multilinear, clamped to the border. */
 template <int D, int NC>
 __device__ inline void
-InterpolateAdd(const int * size, const long long * stride, const float * data, const double * cidx, double w, double * out)
+InterpolateAdd(const int *       size,
+               const long long * stride,
+               const float *     data,
+               const double *    cidx,
+               double            w,
+               double *          out)
 {
   long long offset0 = 0;
   long long step[D];
@@ -328,7 +333,7 @@ struct GradientParams
   double    R[3][3];
 };
 
-template<int D>
+template <int D>
 __global__ void
 MovingGradientKernel(GradientParams g, const float * image, float * out)
 {
@@ -410,7 +415,7 @@ struct RotationParams
   double M[3][3];
 };
 
-template<int D>
+template <int D>
 __global__ void
 RotateKernel(RotationParams r, const float * v, long long n, float * out)
 {
@@ -481,8 +486,11 @@ Weights(const double * affine, const double * spacing, const int * idx, float * 
  * inside test): body(p) for each. row numbers the box's rows along axes 1..D-1. */
 template <int D, typename TBody>
 __device__ inline void
-ForEachPixelInElementRow(const DeviceGrid & g, const double * affine, const long long * bounds, long long row,
-                         TBody && body)
+ForEachPixelInElementRow(const DeviceGrid & g,
+                         const double *     affine,
+                         const long long *  bounds,
+                         long long          row,
+                         TBody &&           body)
 {
   long long lo[D], hi[D];
   for (int k = 0; k < D; ++k)
@@ -727,8 +735,12 @@ GatherPixelsKernel(DeviceGrid                 g,
 
 /** nodal = scale x quantum x sums (NaN everywhere when the force is not finite). */
 __global__ void
-GatherFinishKernel(long long n, const unsigned long long * sums, const unsigned long long * maxAbsBits, long long pixels,
-                   double scale, double * nodal)
+GatherFinishKernel(long long                  n,
+                   const unsigned long long * sums,
+                   const unsigned long long * maxAbsBits,
+                   long long                  pixels,
+                   double                     scale,
+                   double *                   nodal)
 {
   const double maxAbs = __longlong_as_double(static_cast<long long>(*maxAbsBits));
   const double quantum = GatherQuantum(maxAbs, pixels);
@@ -762,13 +774,13 @@ SampleNodesKernel(DeviceGrid g, long long nNodes, const double * nodes, const fl
 /** u(x) = scale x sum_v phi_v(x) u_v, and the largest |u_k| / spacing_k (BarycentricMap::Interpolate). */
 template <int D>
 __global__ void
-InterpolateKernel(DeviceGrid           g,
-                  const int *          owner,
-                  const double *       affine,
-                  const int *          elements,
-                  const double *       nodalU,
-                  double               scale,
-                  float *              out)
+InterpolateKernel(DeviceGrid     g,
+                  const int *    owner,
+                  const double * affine,
+                  const int *    elements,
+                  const double * nodalU,
+                  double         scale,
+                  float *        out)
 {
   for (long long p = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; p < g.n;
        p += static_cast<long long>(gridDim.x) * blockDim.x)
@@ -781,7 +793,7 @@ InterpolateKernel(DeviceGrid           g,
     double u[D] = {};
     for (int v = 0; v <= D; ++v)
     {
-      const double w = wt[v];
+      const double    w = wt[v];
       const long long node = elements[static_cast<long long>(e) * (D + 1) + v];
       for (int k = 0; k < D; ++k)
       {
@@ -875,8 +887,8 @@ FillKernel(int * data, long long n, int value)
 
 // ---- linear elasticity, matrix-free (LinearElasticFEMSolver's system) --------------------------------------------
 // Per element e: the gradients g_a (a = 0..D) of the barycentric shape functions and the volume V_e. For a nodal
-// vector p, K p at node a is sum_e V_e sigma_e g_a with G = sum_b p_b (x) g_b and sigma = lambda tr(G) I + mu (G + G^T),
-// which is the element matrix V (lambda g_a,i g_b,j + mu g_a,j g_b,i + mu delta_ij g_a.g_b) applied to p.
+// vector p, K p at node a is sum_e V_e sigma_e g_a with G = sum_b p_b (x) g_b and sigma = lambda tr(G) I + mu (G +
+// G^T), which is the element matrix V (lambda g_a,i g_b,j + mu g_a,j g_b,i + mu delta_ij g_a.g_b) applied to p.
 constexpr int CGThreads = 256;
 
 template <int D>
@@ -888,7 +900,11 @@ GeometryStride()
 
 template <int D>
 __global__ void
-ElementGeometryKernel(long long ne, const double * nodes, const int * elements, const double * affine, double * geometry)
+ElementGeometryKernel(long long      ne,
+                      const double * nodes,
+                      const int *    elements,
+                      const double * affine,
+                      double *       geometry)
 {
   for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
        e += static_cast<long long>(gridDim.x) * blockDim.x)
@@ -933,8 +949,14 @@ ElementGeometryKernel(long long ne, const double * nodes, const int * elements, 
 /** Inverse diagonal of K (Eigen's DiagonalPreconditioner: 1 where the diagonal is 0), 0 on fixed nodes. */
 template <int D>
 __global__ void
-ElasticDiagonalKernel(long long nn, const int * start, const int * incidence, const double * geometry,
-                      const uint8_t * fixed, double lambda, double mu, double * inverseDiagonal)
+ElasticDiagonalKernel(long long       nn,
+                      const int *     start,
+                      const int *     incidence,
+                      const double *  geometry,
+                      const uint8_t * fixed,
+                      double          lambda,
+                      double          mu,
+                      double *        inverseDiagonal)
 {
   for (long long a = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; a < nn;
        a += static_cast<long long>(gridDim.x) * blockDim.x)
@@ -984,8 +1006,13 @@ SumPartials(const double * partials, int count, double * shared)
 /** S_e = V_e sigma_e(G) with G = sum_b p_b (x) g_b (D x D, row-major), for the elements of a grid-stride loop. */
 template <int D>
 __device__ void
-ElementStresses(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
-                double mu, double * stress)
+ElementStresses(long long      ne,
+                const int *    elements,
+                const double * geometry,
+                const double * p,
+                double         lambda,
+                double         mu,
+                double *       stress)
 {
   for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
        e += static_cast<long long>(gridDim.x) * blockDim.x)
@@ -1022,8 +1049,14 @@ ElementStresses(long long ne, const int * elements, const double * geometry, con
 
 template <int D>
 __global__ void
-ElementStressKernel(long long ne, const int * elements, const double * geometry, const double * p, double lambda,
-                    double mu, const int * done, double * stress)
+ElementStressKernel(long long      ne,
+                    const int *    elements,
+                    const double * geometry,
+                    const double * p,
+                    double         lambda,
+                    double         mu,
+                    const int *    done,
+                    double *       stress)
 {
   if (done && *done)
   {
@@ -1037,9 +1070,17 @@ ElementStressKernel(long long ne, const int * elements, const double * geometry,
  * and the warp sums them by a fixed shuffle tree, so the result is deterministic. */
 template <int D>
 __device__ void
-NodeApplyBlock(long long block, long long nn, const int * start, const int * incidence, const double * geometry,
-               const double * stress, const uint8_t * fixed, const double * p, double * q, double * partials,
-               double * shared)
+NodeApplyBlock(long long       block,
+               long long       nn,
+               const int *     start,
+               const int *     incidence,
+               const double *  geometry,
+               const double *  stress,
+               const uint8_t * fixed,
+               const double *  p,
+               double *        q,
+               double *        partials,
+               double *        shared)
 {
   const int       lane = threadIdx.x & 31;
   const long long a = (block * blockDim.x + threadIdx.x) >> 5;
@@ -1085,9 +1126,16 @@ NodeApplyBlock(long long block, long long nn, const int * start, const int * inc
 
 template <int D>
 __global__ void
-NodeApplyKernel(long long nn, const int * start, const int * incidence, const double * geometry,
-                const double * stress, const uint8_t * fixed, const double * p, const int * done, double * q,
-                double * partials)
+NodeApplyKernel(long long       nn,
+                const int *     start,
+                const int *     incidence,
+                const double *  geometry,
+                const double *  stress,
+                const uint8_t * fixed,
+                const double *  p,
+                const int *     done,
+                double *        q,
+                double *        partials)
 {
   __shared__ double shared[CGThreads];
   if (done && *done)
@@ -1100,8 +1148,16 @@ NodeApplyKernel(long long nn, const int * start, const int * incidence, const do
 /** r_i = ri and z_i = M^-1 ri (for i < ndof), then per block the partial sums of r.r and r.z; returns z_i. Every thread
  * of the block calls it. */
 __device__ double
-StoreResidual(long long block, long long i, long long ndof, double ri, const double * inverseDiagonal, double * r,
-              double * z, double * shared, double * rrPartials, double * rzPartials)
+StoreResidual(long long      block,
+              long long      i,
+              long long      ndof,
+              double         ri,
+              const double * inverseDiagonal,
+              double *       r,
+              double *       z,
+              double *       shared,
+              double *       rrPartials,
+              double *       rzPartials)
 {
   double rr = 0.0, rz = 0.0, zi = 0.0;
   if (i < ndof)
@@ -1127,9 +1183,21 @@ StoreResidual(long long block, long long i, long long ndof, double ri, const dou
 /** x += alpha p, r -= alpha q, z = M^-1 r with alpha = (r.z) / (p.q) for the degrees of freedom of block `block`
  * (CGThreads each), and its partial sums of r.r and r.z. */
 __device__ void
-CGStepBlock(long long block, long long ndof, int parity, const double * pqPartials, int pqCount, const double * p,
-            const double * q, const double * inverseDiagonal, const double * scalars, double * x, double * r, double * z,
-            double * rrPartials, double * rzPartials, double * shared)
+CGStepBlock(long long      block,
+            long long      ndof,
+            int            parity,
+            const double * pqPartials,
+            int            pqCount,
+            const double * p,
+            const double * q,
+            const double * inverseDiagonal,
+            const double * scalars,
+            double *       x,
+            double *       r,
+            double *       z,
+            double *       rrPartials,
+            double *       rzPartials,
+            double *       shared)
 {
   const double    alpha = scalars[parity] / SumPartials(pqPartials, pqCount, shared);
   const long long i = block * blockDim.x + threadIdx.x;
@@ -1143,24 +1211,57 @@ CGStepBlock(long long block, long long ndof, int parity, const double * pqPartia
 }
 
 __global__ void
-CGStepKernel(long long ndof, int parity, const double * pqPartials, int pqCount, const double * p, const double * q,
-             const double * inverseDiagonal, const double * scalars, const int * state, double * x, double * r,
-             double * z, double * rrPartials, double * rzPartials)
+CGStepKernel(long long      ndof,
+             int            parity,
+             const double * pqPartials,
+             int            pqCount,
+             const double * p,
+             const double * q,
+             const double * inverseDiagonal,
+             const double * scalars,
+             const int *    state,
+             double *       x,
+             double *       r,
+             double *       z,
+             double *       rrPartials,
+             double *       rzPartials)
 {
   __shared__ double shared[CGThreads];
   if (state[0])
   {
     return;
   }
-  CGStepBlock(blockIdx.x, ndof, parity, pqPartials, pqCount, p, q, inverseDiagonal, scalars, x, r, z, rrPartials,
-              rzPartials, shared);
+  CGStepBlock(blockIdx.x,
+              ndof,
+              parity,
+              pqPartials,
+              pqCount,
+              p,
+              q,
+              inverseDiagonal,
+              scalars,
+              x,
+              r,
+              z,
+              rrPartials,
+              rzPartials,
+              shared);
 }
 
 /** Counts the product; true (and the converged flag set) when |r|^2 < threshold, otherwise p = z + beta p with
  * beta = (r.z)_new / (r.z)_old for the degrees of freedom of a grid-stride loop. Every block computes the same sums. */
 __device__ bool
-CGDirection(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
-            double threshold, const double * z, double * p, double * scalars, int * state, double * shared)
+CGDirection(long long      ndof,
+            int            parity,
+            const double * rrPartials,
+            const double * rzPartials,
+            int            count,
+            double         threshold,
+            const double * z,
+            double *       p,
+            double *       scalars,
+            int *          state,
+            double *       shared)
 {
   const double rr = SumPartials(rrPartials, count, shared);
   const double rzNew = SumPartials(rzPartials, count, shared);
@@ -1188,8 +1289,16 @@ CGDirection(long long ndof, int parity, const double * rrPartials, const double 
 }
 
 __global__ void
-CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const double * rzPartials, int count,
-                  double threshold, const double * z, double * p, double * scalars, int * state)
+CGDirectionKernel(long long      ndof,
+                  int            parity,
+                  const double * rrPartials,
+                  const double * rzPartials,
+                  int            count,
+                  double         threshold,
+                  const double * z,
+                  double *       p,
+                  double *       scalars,
+                  int *          state)
 {
   __shared__ double shared[CGThreads];
   if (state[0])
@@ -1201,8 +1310,17 @@ CGDirectionKernel(long long ndof, int parity, const double * rrPartials, const d
 
 /** r = f (0 on fixed), x = 0, z = p = M^-1 r; partial sums of r.r and r.z. */
 __global__ void
-CGStartKernel(long long ndof, const double * f, const double * inverseDiagonal, const uint8_t * fixed, int dimension,
-              double * x, double * r, double * z, double * p, double * rrPartials, double * rzPartials)
+CGStartKernel(long long       ndof,
+              const double *  f,
+              const double *  inverseDiagonal,
+              const uint8_t * fixed,
+              int             dimension,
+              double *        x,
+              double *        r,
+              double *        z,
+              double *        p,
+              double *        rrPartials,
+              double *        rzPartials)
 {
   __shared__ double shared[CGThreads];
   const long long   i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
@@ -1254,13 +1372,17 @@ struct ElasticOperator
     const unsigned nodeBlocks = Blocks(static_cast<size_t>(nodes) * 32, CGThreads);
     if (dimension == 2)
     {
-      ElementStressKernel<2><<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
-      NodeApplyKernel<2><<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
+      ElementStressKernel<2>
+        <<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
+      NodeApplyKernel<2>
+        <<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
     }
     else
     {
-      ElementStressKernel<3><<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
-      NodeApplyKernel<3><<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
+      ElementStressKernel<3>
+        <<<GridBlocks(elements), Threads>>>(elements, vertices, geometry, p, lambda, mu, done, stress);
+      NodeApplyKernel<3>
+        <<<nodeBlocks, CGThreads>>>(nodes, start, incidence, geometry, stress, fixed, p, done, q, partials);
     }
     CheckLaunch("NodeApplyKernel");
   }
@@ -1289,7 +1411,7 @@ template <int D>
 __global__ void
 CGSolveKernel(CGSolveParams a)
 {
-  __shared__ double shared[CGThreads];
+  __shared__ double              shared[CGThreads];
   cooperative_groups::grid_group grid = cooperative_groups::this_grid();
   for (long long k = 0; k < a.maximumProducts; ++k)
   {
@@ -1304,12 +1426,25 @@ CGSolveKernel(CGSolveParams a)
     grid.sync();
     for (long long b = blockIdx.x; b < a.dofBlocks; b += gridDim.x)
     {
-      CGStepBlock(b, a.ndof, parity, a.pqPartials, a.nodeBlocks, a.p, a.q, a.inverseDiagonal, a.scalars, a.x, a.r,
-                  a.z, a.rrPartials, a.rzPartials, shared);
+      CGStepBlock(b,
+                  a.ndof,
+                  parity,
+                  a.pqPartials,
+                  a.nodeBlocks,
+                  a.p,
+                  a.q,
+                  a.inverseDiagonal,
+                  a.scalars,
+                  a.x,
+                  a.r,
+                  a.z,
+                  a.rrPartials,
+                  a.rzPartials,
+                  shared);
     }
     grid.sync();
-    const bool converged = CGDirection(a.ndof, parity, a.rrPartials, a.rzPartials, a.dofBlocks, a.threshold, a.z, a.p,
-                                       a.scalars, a.state, shared);
+    const bool converged = CGDirection(
+      a.ndof, parity, a.rrPartials, a.rzPartials, a.dofBlocks, a.threshold, a.z, a.p, a.scalars, a.state, shared);
     grid.sync(); // scalars and p are read by the next product
     if (converged)
     {
@@ -1393,14 +1528,14 @@ struct RegistrationContext::Impl
   DeviceBuffer<int>                elements, incidenceStart, incidence;
   std::vector<int>                 hostStart, hostIncidence;
   // linear elasticity (SetElasticity / SolveElasticity): element gradients and volumes, stresses, CG vectors
-  double                           lambda{ 0 }, mu{ 0 };
-  bool                             elasticityReady{ false };
-  DeviceBuffer<uint8_t>            fixedNodes;
-  DeviceBuffer<double>             geometry, stress, inverseDiagonal, cgX, cgR, cgZ, cgP, cgQ, cgPartials, cgScalars;
-  DeviceBuffer<int>                cgState;
-  bool                             cooperativeSolve{ true };
-  int                              cgResidentBlocks[2]{ -1, -1 }; // CGSolveKernel<2, 3>: 0 where unavailable, -1 unknown
-  size_t                           allocated{ 0 }; // the largest Bytes() seen
+  double                lambda{ 0 }, mu{ 0 };
+  bool                  elasticityReady{ false };
+  DeviceBuffer<uint8_t> fixedNodes;
+  DeviceBuffer<double>  geometry, stress, inverseDiagonal, cgX, cgR, cgZ, cgP, cgQ, cgPartials, cgScalars;
+  DeviceBuffer<int>     cgState;
+  bool                  cooperativeSolve{ true };
+  int                   cgResidentBlocks[2]{ -1, -1 }; // CGSolveKernel<2, 3>: 0 where unavailable, -1 unknown
+  size_t                allocated{ 0 };                // the largest Bytes() seen
 
   /** How many blocks of CGSolveKernel<D> the device keeps resident at once (0: no cooperative launch). */
   template <int D>
@@ -1410,11 +1545,12 @@ struct RegistrationContext::Impl
     int & n = cgResidentBlocks[D - 2];
     if (n < 0)
     {
-      int device = 0, cooperative = 0, sms = 0, perSM = 0;
-      const bool ok = cudaGetDevice(&device) == cudaSuccess &&
-                      cudaDeviceGetAttribute(&cooperative, cudaDevAttrCooperativeLaunch, device) == cudaSuccess &&
-                      cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device) == cudaSuccess &&
-                      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&perSM, CGSolveKernel<D>, CGThreads, 0) == cudaSuccess;
+      int        device = 0, cooperative = 0, sms = 0, perSM = 0;
+      const bool ok =
+        cudaGetDevice(&device) == cudaSuccess &&
+        cudaDeviceGetAttribute(&cooperative, cudaDevAttrCooperativeLaunch, device) == cudaSuccess &&
+        cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device) == cudaSuccess &&
+        cudaOccupancyMaxActiveBlocksPerMultiprocessor(&perSM, CGSolveKernel<D>, CGThreads, 0) == cudaSuccess;
       n = ok && cooperative ? sms * perSM : 0;
       if (!ok)
       {
@@ -1429,16 +1565,16 @@ struct RegistrationContext::Impl
   bool
   LaunchCGSolve(CGSolveParams params)
   {
-    const long long needed =
-      std::max<long long>({ params.nodeBlocks, params.dofBlocks, (params.op.elements + CGThreads - 1) / CGThreads, 1LL });
+    const long long needed = std::max<long long>(
+      { params.nodeBlocks, params.dofBlocks, (params.op.elements + CGThreads - 1) / CGThreads, 1LL });
     const int blocks = static_cast<int>(std::min<long long>(needed, ResidentCGBlocks<D>()));
     if (blocks <= 0)
     {
       return false;
     }
     void * args[] = { &params };
-    if (cudaLaunchCooperativeKernel(reinterpret_cast<const void *>(CGSolveKernel<D>), blocks, CGThreads, args, 0, nullptr) !=
-        cudaSuccess)
+    if (cudaLaunchCooperativeKernel(
+          reinterpret_cast<const void *>(CGSolveKernel<D>), blocks, CGThreads, args, 0, nullptr) != cudaSuccess)
     {
       cudaGetLastError();
       cgResidentBlocks[D - 2] = 0; // not again
@@ -1450,9 +1586,15 @@ struct RegistrationContext::Impl
   ElasticOperator
   Operator()
   {
-    return ElasticOperator{ dimension,           static_cast<long long>(numberOfNodes), static_cast<long long>(numberOfElements),
-                            elements.Data(),     incidenceStart.Data(),                  incidence.Data(),
-                            geometry.Data(),     stress.Data(),                          lambda,
+    return ElasticOperator{ dimension,
+                            static_cast<long long>(numberOfNodes),
+                            static_cast<long long>(numberOfElements),
+                            elements.Data(),
+                            incidenceStart.Data(),
+                            incidence.Data(),
+                            geometry.Data(),
+                            stress.Data(),
+                            lambda,
                             mu };
   }
 
@@ -1470,9 +1612,11 @@ struct RegistrationContext::Impl
     s += mask.Size() + (w.Size() + bufferA.Size() + bufferB.Size() + force.Size() + density.Size()) * sizeof(float);
     s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + nodal.Size()) * sizeof(double) +
          nodalSums.Size() * sizeof(unsigned long long);
-    s += (bounds.Size() + rowStart.Size()) * sizeof(long long) + (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
+    s += (bounds.Size() + rowStart.Size()) * sizeof(long long) +
+         (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
     s += fixedNodes.Size() + cgState.Size() * sizeof(int);
-    for (const auto * b : { &geometry, &stress, &inverseDiagonal, &cgX, &cgR, &cgZ, &cgP, &cgQ, &cgPartials, &cgScalars })
+    for (const auto * b :
+         { &geometry, &stress, &inverseDiagonal, &cgX, &cgR, &cgZ, &cgP, &cgQ, &cgPartials, &cgScalars })
     {
       s += b->Size() * sizeof(double);
     }
@@ -1482,7 +1626,8 @@ struct RegistrationContext::Impl
 
 RegistrationContext::RegistrationContext()
   : m_Impl(new Impl)
-{}
+{
+}
 
 RegistrationContext::~RegistrationContext() = default;
 
@@ -1639,16 +1784,18 @@ Status
 RegistrationContext::ComputeForce(ForceStatistics & statistics, bool warpedGradient)
 {
   return Guard([&] {
-    Impl & m = *m_Impl;
+    Impl &          m = *m_Impl;
     const uint8_t * mask = m.hasMask ? m.mask.Data() : nullptr;
     const unsigned  blocks = ReductionBlocks(m.grid.n);
     if (m.dimension == 2)
     {
-      ForceKernel<2><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
+      ForceKernel<2><<<blocks, Threads>>>(
+        m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
     }
     else
     {
-      ForceKernel<3><<<blocks, Threads>>>(m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
+      ForceKernel<3><<<blocks, Threads>>>(
+        m.grid, m.levels, m.w.Data(), warpedGradient, mask, m.force.Data(), m.density.Data(), m.sums.Data());
     }
     CheckLaunch("ForceKernel");
     std::vector<double> partial(4 * blocks);
@@ -1699,30 +1846,28 @@ RegistrationContext::DownloadForce(float * host) const
 Status
 RegistrationContext::DownloadLevel(unsigned int level, float * fixed, float * moving, float * movingGradient) const
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    const Impl & m = *m_Impl;
+    if (level >= static_cast<unsigned int>(m.levels.count))
     {
-      const Impl & m = *m_Impl;
-      if (level >= static_cast<unsigned int>(m.levels.count))
-      {
-        throw CudaError("no pyramid level " + std::to_string(level));
-      }
-      const DeviceLevel & L = m.levels.level[level];
-      const size_t        nf = static_cast<size_t>(L.fixedSize[0]) * L.fixedSize[1] * L.fixedSize[2];
-      const size_t        nm = static_cast<size_t>(L.movingSize[0]) * L.movingSize[1] * L.movingSize[2];
-      if (fixed)
-      {
-        m.levelFixed[level].Download(fixed, nf);
-      }
-      if (moving)
-      {
-        m.levelMoving[level].Download(moving, nm);
-      }
-      if (movingGradient)
-      {
-        m.levelGradient[level].Download(movingGradient, nm * m.dimension);
-      }
-    });
+      throw CudaError("no pyramid level " + std::to_string(level));
+    }
+    const DeviceLevel & L = m.levels.level[level];
+    const size_t        nf = static_cast<size_t>(L.fixedSize[0]) * L.fixedSize[1] * L.fixedSize[2];
+    const size_t        nm = static_cast<size_t>(L.movingSize[0]) * L.movingSize[1] * L.movingSize[2];
+    if (fixed)
+    {
+      m.levelFixed[level].Download(fixed, nf);
+    }
+    if (moving)
+    {
+      m.levelMoving[level].Download(moving, nm);
+    }
+    if (movingGradient)
+    {
+      m.levelGradient[level].Download(movingGradient, nm * m.dimension);
+    }
+  });
 }
 
 Status
@@ -1792,11 +1937,21 @@ RegistrationContext::SetMesh(const double *  nodes,
     const unsigned rowBlocks = GridBlocks(rowStart.back());
     if (D == 2)
     {
-      RasteriseKernel<2><<<rowBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+      RasteriseKernel<2><<<rowBlocks, Threads>>>(m.grid,
+                                                 static_cast<long long>(numberOfElements),
+                                                 m.rowStart.Data(),
+                                                 m.affine.Data(),
+                                                 m.bounds.Data(),
+                                                 m.owner.Data());
     }
     else
     {
-      RasteriseKernel<3><<<rowBlocks, Threads>>>(m.grid, static_cast<long long>(numberOfElements), m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+      RasteriseKernel<3><<<rowBlocks, Threads>>>(m.grid,
+                                                 static_cast<long long>(numberOfElements),
+                                                 m.rowStart.Data(),
+                                                 m.affine.Data(),
+                                                 m.bounds.Data(),
+                                                 m.owner.Data());
     }
     CheckLaunch("RasteriseKernel");
     const unsigned long long none = ~0ULL;
@@ -1851,22 +2006,37 @@ RegistrationContext::SetElasticity(double lambda, double mu, const uint8_t * fix
     const unsigned elementBlocks = GridBlocks(ne), nodeBlocks = GridBlocks(nn);
     if (D == 2)
     {
-      ElementGeometryKernel<2><<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
+      ElementGeometryKernel<2>
+        <<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
       CheckLaunch("ElementGeometryKernel");
-      ElasticDiagonalKernel<2><<<nodeBlocks, Threads>>>(nn, m.incidenceStart.Data(), m.incidence.Data(), m.geometry.Data(), m.fixedNodes.Data(), lambda, mu, m.inverseDiagonal.Data());
+      ElasticDiagonalKernel<2><<<nodeBlocks, Threads>>>(nn,
+                                                        m.incidenceStart.Data(),
+                                                        m.incidence.Data(),
+                                                        m.geometry.Data(),
+                                                        m.fixedNodes.Data(),
+                                                        lambda,
+                                                        mu,
+                                                        m.inverseDiagonal.Data());
     }
     else
     {
-      ElementGeometryKernel<3><<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
+      ElementGeometryKernel<3>
+        <<<elementBlocks, Threads>>>(ne, m.nodes.Data(), m.elements.Data(), m.affine.Data(), m.geometry.Data());
       CheckLaunch("ElementGeometryKernel");
-      ElasticDiagonalKernel<3><<<nodeBlocks, Threads>>>(nn, m.incidenceStart.Data(), m.incidence.Data(), m.geometry.Data(), m.fixedNodes.Data(), lambda, mu, m.inverseDiagonal.Data());
+      ElasticDiagonalKernel<3><<<nodeBlocks, Threads>>>(nn,
+                                                        m.incidenceStart.Data(),
+                                                        m.incidence.Data(),
+                                                        m.geometry.Data(),
+                                                        m.fixedNodes.Data(),
+                                                        lambda,
+                                                        mu,
+                                                        m.inverseDiagonal.Data());
     }
     CheckLaunch("ElasticDiagonalKernel");
     m.elasticityReady = true;
     m.allocated = std::max(m.allocated, m.Bytes());
   });
 }
-
 
 Status
 RegistrationContext::SolveElasticity(const double * f,
@@ -1891,7 +2061,17 @@ RegistrationContext::SolveElasticity(const double * f,
     double *        rrPartials = pqPartials + nodeBlocks;
     double *        rzPartials = rrPartials + dofBlocks;
     m.cgQ.Upload(f, ndof); // f in q's buffer until the start kernel has read it
-    CGStartKernel<<<dofBlocks, CGThreads>>>(nd, m.cgQ.Data(), m.inverseDiagonal.Data(), m.fixedNodes.Data(), static_cast<int>(D), m.cgX.Data(), m.cgR.Data(), m.cgZ.Data(), m.cgP.Data(), rrPartials, rzPartials);
+    CGStartKernel<<<dofBlocks, CGThreads>>>(nd,
+                                            m.cgQ.Data(),
+                                            m.inverseDiagonal.Data(),
+                                            m.fixedNodes.Data(),
+                                            static_cast<int>(D),
+                                            m.cgX.Data(),
+                                            m.cgR.Data(),
+                                            m.cgZ.Data(),
+                                            m.cgP.Data(),
+                                            rrPartials,
+                                            rzPartials);
     CheckLaunch("CGStartKernel");
     std::vector<double> start(2 * dofBlocks);
     Check(cudaMemcpy(start.data(), rrPartials, start.size() * sizeof(double), cudaMemcpyDeviceToHost), "CG start");
@@ -1914,12 +2094,24 @@ RegistrationContext::SolveElasticity(const double * f,
     Check(cudaMemcpy(m.cgScalars.Data(), scalars, sizeof(scalars), cudaMemcpyHostToDevice), "CG scalars");
     Check(cudaMemcpy(m.cgState.Data(), state, sizeof(state), cudaMemcpyHostToDevice), "CG state");
     const ElasticOperator op = m.Operator();
-    int              hostState[2] = { 0, 0 };
-    const CGSolveParams params{ op,           m.fixedNodes.Data(), m.inverseDiagonal.Data(), nd,
-                                m.cgX.Data(), m.cgR.Data(),        m.cgZ.Data(),             m.cgP.Data(),
-                                m.cgQ.Data(), pqPartials,          rrPartials,               rzPartials,
-                                static_cast<int>(nodeBlocks),      static_cast<int>(dofBlocks),
-                                m.cgScalars.Data(),                m.cgState.Data(),         threshold,
+    int                   hostState[2] = { 0, 0 };
+    const CGSolveParams   params{ op,
+                                m.fixedNodes.Data(),
+                                m.inverseDiagonal.Data(),
+                                nd,
+                                m.cgX.Data(),
+                                m.cgR.Data(),
+                                m.cgZ.Data(),
+                                m.cgP.Data(),
+                                m.cgQ.Data(),
+                                pqPartials,
+                                rrPartials,
+                                rzPartials,
+                                static_cast<int>(nodeBlocks),
+                                static_cast<int>(dofBlocks),
+                                m.cgScalars.Data(),
+                                m.cgState.Data(),
+                                threshold,
                                 static_cast<long long>(maxIterations) };
     const bool fused = m.cooperativeSolve && (D == 2 ? m.LaunchCGSolve<2>(params) : m.LaunchCGSolve<3>(params));
     if (fused)
@@ -1937,8 +2129,30 @@ RegistrationContext::SolveElasticity(const double * f,
       {
         const int parity = static_cast<int>(k & 1);
         op.Apply(m.cgP.Data(), m.fixedNodes.Data(), m.cgState.Data(), m.cgQ.Data(), pqPartials);
-        CGStepKernel<<<dofBlocks, CGThreads>>>(nd, parity, pqPartials, static_cast<int>(nodeBlocks), m.cgP.Data(), m.cgQ.Data(), m.inverseDiagonal.Data(), m.cgScalars.Data(), m.cgState.Data(), m.cgX.Data(), m.cgR.Data(), m.cgZ.Data(), rrPartials, rzPartials);
-        CGDirectionKernel<<<dofBlocks, CGThreads>>>(nd, parity, rrPartials, rzPartials, static_cast<int>(dofBlocks), threshold, m.cgZ.Data(), m.cgP.Data(), m.cgScalars.Data(), m.cgState.Data());
+        CGStepKernel<<<dofBlocks, CGThreads>>>(nd,
+                                               parity,
+                                               pqPartials,
+                                               static_cast<int>(nodeBlocks),
+                                               m.cgP.Data(),
+                                               m.cgQ.Data(),
+                                               m.inverseDiagonal.Data(),
+                                               m.cgScalars.Data(),
+                                               m.cgState.Data(),
+                                               m.cgX.Data(),
+                                               m.cgR.Data(),
+                                               m.cgZ.Data(),
+                                               rrPartials,
+                                               rzPartials);
+        CGDirectionKernel<<<dofBlocks, CGThreads>>>(nd,
+                                                    parity,
+                                                    rrPartials,
+                                                    rzPartials,
+                                                    static_cast<int>(dofBlocks),
+                                                    threshold,
+                                                    m.cgZ.Data(),
+                                                    m.cgP.Data(),
+                                                    m.cgScalars.Data(),
+                                                    m.cgState.Data());
       }
       CheckLaunch("CG kernels");
       Check(cudaMemcpy(hostState, m.cgState.Data(), sizeof(hostState), cudaMemcpyDeviceToHost), "CG state");
@@ -1988,19 +2202,33 @@ RegistrationContext::GatherForce(double scale, double * nodal)
     const long long nd = static_cast<long long>(m.numberOfNodes * m.dimension);
     Check(cudaMemsetAsync(m.scratch64.Data(), 0, sizeof(unsigned long long)), "gather reset");
     Check(cudaMemsetAsync(m.nodalSums.Data(), 0, static_cast<size_t>(nd) * sizeof(unsigned long long)), "gather reset");
-    MaxAbsKernel<<<ReductionBlocks(m.grid.n * m.dimension), Threads>>>(m.force.Data(), m.grid.n * m.dimension, m.scratch64.Data());
+    MaxAbsKernel<<<ReductionBlocks(m.grid.n * m.dimension), Threads>>>(
+      m.force.Data(), m.grid.n * m.dimension, m.scratch64.Data());
     CheckLaunch("MaxAbsKernel");
     const unsigned blocks = GridBlocks(m.grid.n);
     if (m.dimension == 2)
     {
-      GatherPixelsKernel<2><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.force.Data(), m.scratch64.Data(), m.nodalSums.Data());
+      GatherPixelsKernel<2><<<blocks, Threads>>>(m.grid,
+                                                 m.owner.Data(),
+                                                 m.affine.Data(),
+                                                 m.elements.Data(),
+                                                 m.force.Data(),
+                                                 m.scratch64.Data(),
+                                                 m.nodalSums.Data());
     }
     else
     {
-      GatherPixelsKernel<3><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.force.Data(), m.scratch64.Data(), m.nodalSums.Data());
+      GatherPixelsKernel<3><<<blocks, Threads>>>(m.grid,
+                                                 m.owner.Data(),
+                                                 m.affine.Data(),
+                                                 m.elements.Data(),
+                                                 m.force.Data(),
+                                                 m.scratch64.Data(),
+                                                 m.nodalSums.Data());
     }
     CheckLaunch("GatherPixelsKernel");
-    GatherFinishKernel<<<GridBlocks(nd), Threads>>>(nd, m.nodalSums.Data(), m.scratch64.Data(), m.grid.n, scale, m.nodal.Data());
+    GatherFinishKernel<<<GridBlocks(nd), Threads>>>(
+      nd, m.nodalSums.Data(), m.scratch64.Data(), m.grid.n, scale, m.nodal.Data());
     CheckLaunch("GatherFinishKernel");
     m.nodal.Download(nodal, m.numberOfNodes * m.dimension);
   });
@@ -2014,11 +2242,13 @@ RegistrationContext::SampleFieldAtNodes(double * nodal)
     const unsigned blocks = GridBlocks(static_cast<long long>(m.numberOfNodes));
     if (m.dimension == 2)
     {
-      SampleNodesKernel<2><<<blocks, Threads>>>(m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
+      SampleNodesKernel<2><<<blocks, Threads>>>(
+        m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
     }
     else
     {
-      SampleNodesKernel<3><<<blocks, Threads>>>(m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
+      SampleNodesKernel<3><<<blocks, Threads>>>(
+        m.grid, static_cast<long long>(m.numberOfNodes), m.nodes.Data(), m.w.Data(), m.nodal.Data());
     }
     CheckLaunch("SampleNodesKernel");
     m.nodal.Download(nodal, m.numberOfNodes * m.dimension);
@@ -2026,7 +2256,10 @@ RegistrationContext::SampleFieldAtNodes(double * nodal)
 }
 
 Status
-RegistrationContext::ApplyUpdate(const double * nodalU, double scale, double & maxUpdatePixels, unsigned int & squarings)
+RegistrationContext::ApplyUpdate(const double * nodalU,
+                                 double         scale,
+                                 double &       maxUpdatePixels,
+                                 unsigned int & squarings)
 {
   return Guard([&] {
     Impl &          m = *m_Impl;
@@ -2039,13 +2272,15 @@ RegistrationContext::ApplyUpdate(const double * nodalU, double scale, double & m
     float * b = m.bufferB.Data();
     if (m.dimension == 2)
     {
-      InterpolateKernel<2><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+      InterpolateKernel<2>
+        <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
       CheckLaunch("InterpolateKernel");
       NormsKernel<2><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
     }
     else
     {
-      InterpolateKernel<3><<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+      InterpolateKernel<3>
+        <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
       CheckLaunch("InterpolateKernel");
       NormsKernel<3><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
     }
@@ -2124,32 +2359,30 @@ RegistrationContext::DownloadField(float * host) const
 Status
 RegistrationContext::DownloadPhysicalField(const double * direction, float * host) const
 {
-  return Guard(
-    [&]
+  return Guard([&] {
+    Impl &             m = *m_Impl;
+    RotationParams     r{};
+    const unsigned int D = m.dimension;
+    for (unsigned int i = 0; i < D; ++i)
     {
-      Impl &             m = *m_Impl;
-      RotationParams     r{};
-      const unsigned int D = m.dimension;
-      for (unsigned int i = 0; i < D; ++i)
+      for (unsigned int k = 0; k < D; ++k)
       {
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          r.M[i][k] = direction[i * D + k];
-        }
+        r.M[i][k] = direction[i * D + k];
       }
-      // the update buffer that does not hold the previous w (RevertUpdate stays valid): no allocation
-      DeviceBuffer<float> & rotated = m.previous == &m.bufferA ? m.bufferB : m.bufferA;
-      if (D == 2)
-      {
-        RotateKernel<2><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
-      }
-      else
-      {
-        RotateKernel<3><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
-      }
-      CheckLaunch("RotateKernel");
-      rotated.Download(host, m.numberOfPixels * D);
-    });
+    }
+    // the update buffer that does not hold the previous w (RevertUpdate stays valid): no allocation
+    DeviceBuffer<float> & rotated = m.previous == &m.bufferA ? m.bufferB : m.bufferA;
+    if (D == 2)
+    {
+      RotateKernel<2><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
+    }
+    else
+    {
+      RotateKernel<3><<<GridBlocks(m.grid.n), Threads>>>(r, m.w.Data(), m.grid.n, rotated.Data());
+    }
+    CheckLaunch("RotateKernel");
+    rotated.Download(host, m.numberOfPixels * D);
+  });
 }
 
 Status

@@ -50,18 +50,18 @@ struct PyramidLevelView
 {
   size_t        fixedSize[3]{ 1, 1, 1 };
   size_t        movingSize[3]{ 1, 1, 1 };
-  const float * fixed{ nullptr };          // level 0: the fixed image itself, on the registration grid
+  const float * fixed{ nullptr }; // level 0: the fixed image itself, on the registration grid
   const float * moving{ nullptr };
   const float * movingGradient{ nullptr }; // D interleaved, per mm, rotated into the fixed grid frame
   ShrinkView    fixedShrink, movingShrink; // read where fixed or moving is nullptr
   double        movingSpacing[3]{ 1.0, 1.0, 1.0 };
-  double        R[3][3]{};                 // moving grid frame -> fixed grid frame (DensityFieldFilter::PyramidLevel)
-  double        FA[3][3]{};                // fixed-level continuous index = FA fineIndex + Fc
+  double        R[3][3]{};  // moving grid frame -> fixed grid frame (DensityFieldFilter::PyramidLevel)
+  double        FA[3][3]{}; // fixed-level continuous index = FA fineIndex + Fc
   double        Fc[3]{};
-  double        MA[3][3]{};                // moving-level continuous index = MA fineIndex + Mc + MG w
+  double        MA[3][3]{}; // moving-level continuous index = MA fineIndex + Mc + MG w
   double        Mc[3]{};
-  double        MG[3][3]{};                // per mm of the grid-frame displacement w
-  double        weight{ 1.0 };             // MSSD weight of the level (paper Eq. 3)
+  double        MG[3][3]{};    // per mm of the grid-frame displacement w
+  double        weight{ 1.0 }; // MSSD weight of the level (paper Eq. 3)
 };
 
 /** Sums of one force evaluation (paper Eq. 3 and 5), before the pixel volume factor. */
@@ -140,8 +140,12 @@ public:
    * node * D + component; u = 0 on fixed nodes. converged is false when maxIterations products did not reach the
    * tolerance (the caller falls back to the CPU solver); iterations: the products K p taken. */
   Status
-  SolveElasticity(const double * f, double * u, double tolerance, size_t maxIterations, size_t & iterations,
-                  bool & converged);
+  SolveElasticity(const double * f,
+                  double *       u,
+                  double         tolerance,
+                  size_t         maxIterations,
+                  size_t &       iterations,
+                  bool &         converged);
   /** true (default): SolveElasticity runs its whole CG loop as one cooperative launch (grid barriers between the
    * phases of a product) where the device allows it; false: one launch per phase, the host checking every 16 products.
    * Both give the same iterates, bit for bit. */

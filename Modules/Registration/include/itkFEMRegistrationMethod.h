@@ -83,10 +83,12 @@ public:
   using DisplacementFieldType = TDisplacementField;
   using DensityImageType = Image<float, ImageDimension>;
   using LabelImageType = Image<int32_t, ImageDimension>;
-  using MeshType = Mesh<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double>>;
+  using MeshType =
+    Mesh<double, ImageDimension, DefaultStaticMeshTraits<double, ImageDimension, ImageDimension, double>>;
   using TransformType = DisplacementFieldTransform<double, ImageDimension>;
   using DecoratedTransformType = DataObjectDecorator<TransformType>;
-  using DensityFilterType = DensityFieldFilter<FixedImageType, MovingImageType, DisplacementFieldType, DensityImageType>;
+  using DensityFilterType =
+    DensityFieldFilter<FixedImageType, MovingImageType, DisplacementFieldType, DensityImageType>;
   using CVTFilterType = DiscreteCVTFilter<DensityImageType, LabelImageType>;
   using DualMeshFilterType = DualMeshFilter<LabelImageType, MeshType>;
   using SolverType = LinearElasticFEMSolver<ImageDimension>;
@@ -99,14 +101,14 @@ public:
   struct IterationRecord
   {
     unsigned int iteration;
-    double       mssd;       // paper Eq. 3 (x pixel volume)
-    double       ssd;        // full-resolution SSD (x pixel volume)
-    double       elastic;    // R of the current transformation on this iteration's mesh
-    double       total;      // mssd + beta * elastic
+    double       mssd;    // paper Eq. 3 (x pixel volume)
+    double       ssd;     // full-resolution SSD (x pixel volume)
+    double       elastic; // R of the current transformation on this iteration's mesh
+    double       total;   // mssd + beta * elastic
     size_t       nodes;
-    size_t       sweeps;     // CVT sweeps of this iteration (dynamic mode)
-    double       maxUpdate;  // largest update displacement (pixels) of the accepted step
-    double       stepScale;  // fraction of the full step K^-1 f / beta taken (1, 1/2, ...; 0: no step lowered the MSSD)
+    size_t       sweeps;    // CVT sweeps of this iteration (dynamic mode)
+    double       maxUpdate; // largest update displacement (pixels) of the accepted step
+    double       stepScale; // fraction of the full step K^-1 f / beta taken (1, 1/2, ...; 0: no step lowered the MSSD)
     size_t       solverIterations; // conjugate-gradient products K p of this iteration's solve
     bool         deviceSolve;      // the solve ran on the GPU (CUDA back-end, see DeviceSolverMinimumDegreesOfFreedom)
   };
@@ -266,8 +268,8 @@ private:
   /** Both back-ends: zero output field, the stages' settings, history/timing/beta reset (needs m_BackendUsed). */
   void
   ConfigureStages();
-  /** nodalU = K^-1 nodalForce by solve() (timed as FEM solve); while beta is unset (the first iteration) sets it so that
-   * beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
+  /** nodalU = K^-1 nodalForce by solve() (timed as FEM solve); while beta is unset (the first iteration) sets it so
+   * that beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
   template <typename TSolve>
   bool
   SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd, TSolve && solve);
@@ -288,25 +290,25 @@ private:
   void
   UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh);
 
-  unsigned int  m_NumberOfIterations{ 100 };
-  SizeValueType m_NumberOfNodes{ 100 };
-  unsigned int  m_NumberOfLevels{ 3 };
-  double        m_Lambda{ 1.0 };
-  double        m_Mu{ 1.0 };
-  double        m_EnergyRatio{ 0.02 };
-  double        m_AlphaFactor{ 0.1 };
+  unsigned int      m_NumberOfIterations{ 100 };
+  SizeValueType     m_NumberOfNodes{ 100 };
+  unsigned int      m_NumberOfLevels{ 3 };
+  double            m_Lambda{ 1.0 };
+  double            m_Mu{ 1.0 };
+  double            m_EnergyRatio{ 0.02 };
+  double            m_AlphaFactor{ 0.1 };
   ForceGradientEnum m_ForceGradient{ ForceGradientEnum::WarpedMoving };
   unsigned int      m_MaximumStepHalvings{ 5 };
-  double        m_CVTEpsilon{ 0.0 };
-  SizeValueType m_MaximumNumberOfSweeps{ 1000 };
-  unsigned int  m_ReinitializationInterval{ 0 };
-  MeshModeEnum  m_MeshMode{ MeshModeEnum::Dynamic };
-  unsigned int  m_RegularGridSize{ 0 };
-  BackendEnum   m_Backend{ BackendEnum::Auto };
-  BackendEnum   m_BackendUsed{ BackendEnum::CPU };
-  size_t        m_DeviceBytes{ 0 };
-  SizeValueType m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
-  SizeValueType m_DeviceSolverMaximumIterations{ 0 };
+  double            m_CVTEpsilon{ 0.0 };
+  SizeValueType     m_MaximumNumberOfSweeps{ 1000 };
+  unsigned int      m_ReinitializationInterval{ 0 };
+  MeshModeEnum      m_MeshMode{ MeshModeEnum::Dynamic };
+  unsigned int      m_RegularGridSize{ 0 };
+  BackendEnum       m_Backend{ BackendEnum::Auto };
+  BackendEnum       m_BackendUsed{ BackendEnum::CPU };
+  size_t            m_DeviceBytes{ 0 };
+  SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
+  SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
 
   double                       m_Beta{ 0.0 };
   unsigned int                 m_CurrentIteration{ 0 };
@@ -330,7 +332,7 @@ private:
 } // namespace itk
 
 #ifndef ITK_MANUAL_INSTANTIATION
-#  include "itkFEMRegistrationMethod.hxx"
+#include "itkFEMRegistrationMethod.hxx"
 #endif
 
 #endif

@@ -103,7 +103,7 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
-  const auto size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
+  const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
   for (unsigned int k = 0; k < ImageDimension; ++k)
   {
@@ -208,7 +208,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
   // current transformation W(x) = x + w(x): grid-frame flat copy + physical image for the density filter
   // three full fields: w, the update (also the scratch of exp and the target of the composition) and exp(update)
-  std::vector<float> w(n * D, 0.0f), update(n * D), expUpdate(n * D);
+  std::vector<float>      w(n * D, 0.0f), update(n * D), expUpdate(n * D);
   DisplacementFieldType * field = this->GetDisplacementField();
   this->ConfigureStages();
   dmr::BarycentricMap<D> bary;
@@ -251,8 +251,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     if (m_MeshMode == MeshModeEnum::Dynamic)
     {
       m_CVTFilter->SetInput(m_DensityFilter->GetOutput());
-      const bool reinitialize =
-        m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
+      const bool reinitialize = m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
       // warm start (paper 4.7) unless a fresh contraction is due
       m_CVTFilter->SetInitialLabels(m_Labels && !reinitialize ? m_Labels.GetPointer() : nullptr);
       m_CVTFilter->Update();
@@ -504,7 +503,7 @@ void
 FEMRegistrationMethod<TF, TM, TD>::MakeTransformOutput()
 {
   // transform output (double field, as ResampleImageFilter expects)
-  constexpr unsigned int D = ImageDimension;
+  constexpr unsigned int        D = ImageDimension;
   const DisplacementFieldType * field = this->GetDisplacementField();
   using TransformFieldType = typename TransformType::DisplacementFieldType;
   auto transformField = TransformFieldType::New();
@@ -514,18 +513,15 @@ FEMRegistrationMethod<TF, TM, TD>::MakeTransformOutput()
   const auto * src = field->GetBufferPointer();
   auto *       dst = transformField->GetBufferPointer();
   const size_t n = field->GetLargestPossibleRegion().GetNumberOfPixels();
-  dmr::ParallelForChunks(this->GetMultiThreader(),
-                         n,
-                         [&](size_t b, size_t e)
-                         {
-                           for (size_t p = b; p < e; ++p)
-                           {
-                             for (unsigned int k = 0; k < D; ++k)
-                             {
-                               dst[p][k] = src[p][k];
-                             }
-                           }
-                         });
+  dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        dst[p][k] = src[p][k];
+      }
+    }
+  });
   auto transform = TransformType::New();
   transform->SetDisplacementField(transformField);
   this->GetTransformOutput()->Set(transform);
@@ -553,7 +549,7 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
   std::vector<cuda::PyramidLevelView> views(pyramid.size());
   for (size_t l = 0; l < pyramid.size(); ++l)
   {
-    const TLevel &            L = pyramid[l];
+    const TLevel &           L = pyramid[l];
     cuda::PyramidLevelView & v = views[l];
     for (unsigned int r = 0; r < D; ++r)
     {
@@ -577,8 +573,7 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
     v.fixed = L.fixed.empty() ? nullptr : L.fixed.data();
     v.moving = L.moving.empty() ? nullptr : L.moving.data();
     v.movingGradient = L.movingGradient.empty() ? nullptr : L.movingGradient.data();
-    auto shrinkView = [](const auto & plan, cuda::ShrinkView & view)
-    {
+    auto shrinkView = [](const auto & plan, cuda::ShrinkView & view) {
       for (unsigned int k = 0; k < D && !plan.kept[k].empty(); ++k)
       {
         view.kept[k] = plan.kept[k].data();
@@ -649,7 +644,7 @@ void
 FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh)
 {
   constexpr unsigned int D = ImageDimension;
-  const auto raster =
+  const auto             raster =
     dmr::MeshRasterData<D>(dmr::Grid<D>::FromImage(this->GetFixedImage()), mesh, this->GetMultiThreader());
   dmr::ThrowOnError(context.SetMesh(mesh.nodes.data(),
                                     mesh.NumberOfNodes(),
@@ -657,7 +652,7 @@ FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & c
                                     mesh.elements.size(),
                                     raster.affine.data(),
                                     raster.bounds.data()),
-    "barycentric rasterisation");
+                    "barycentric rasterisation");
 }
 
 template <typename TF, typename TM, typename TD>
@@ -668,11 +663,11 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   using Clock = std::chrono::steady_clock;
   auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
 
-  const FixedImageType *  fixed = this->GetFixedImage();
-  MultiThreaderBase *     threader = this->GetMultiThreader();
-  const auto              grid = dmr::Grid<D>::FromImage(fixed);
-  const size_t            n = grid.numberOfPixels;
-  const double            dV = grid.PixelVolume();
+  const FixedImageType * fixed = this->GetFixedImage();
+  MultiThreaderBase *    threader = this->GetMultiThreader();
+  const auto             grid = dmr::Grid<D>::FromImage(fixed);
+  const size_t           n = grid.numberOfPixels;
+  const double           dV = grid.PixelVolume();
 
   DisplacementFieldType * field = this->GetDisplacementField();
   this->ConfigureStages();
@@ -681,9 +676,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids). The
   // device's context is created meanwhile on a helper thread (each takes about 0.1 s on a CT); a failure there shows
   // again, with its message, at the context's Initialize.
-  auto t0 = Clock::now();
-  auto deviceContext = std::async(std::launch::async, [] { return dmr::cuda::CreateContext(); });
-  const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
+  auto                 t0 = Clock::now();
+  auto                 deviceContext = std::async(std::launch::async, [] { return dmr::cuda::CreateContext(); });
+  const auto           views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
   std::vector<uint8_t> mask;
   if (const auto * maskImage = this->GetFixedMask())
   {
@@ -700,8 +695,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   }
   deviceContext.wait();
   dmr::cuda::RegistrationContext context;
-  dmr::ThrowOnError(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
-                    "initialisation");
+  dmr::ThrowOnError(
+    context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
+    "initialisation");
   std::vector<uint8_t>().swap(mask);
   m_Timing.registration += seconds(t0, Clock::now());
 
@@ -783,8 +779,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     // mesh is built on the CPU from their small summary (counts, sums, adjacency)
     if (m_MeshMode == MeshModeEnum::Dynamic)
     {
-      const bool reinitialize =
-        m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
+      const bool reinitialize = m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
       if (it == 1 || reinitialize)
       {
         // initial tessellation (contraction) on the CPU: the one full-volume download of the density
@@ -810,9 +805,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         dmr::ThrowOnError(cvt.SetLabels(labels->GetBufferPointer(), m_NumberOfNodes, false), "CVT labels");
         m_CVTFilter->GetOutput()->ReleaseData();
         density = nullptr;
-        m_Timing.tessellationOptimization +=
-          std::max(0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime() -
-                          m_CVTFilter->GetOptimizationTime());
+        m_Timing.tessellationOptimization += std::max(
+          0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime() - m_CVTFilter->GetOptimizationTime());
       }
       else
       {

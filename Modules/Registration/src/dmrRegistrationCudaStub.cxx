@@ -33,13 +33,18 @@ Unavailable()
 } // namespace
 
 struct RegistrationContext::Impl
-{};
+{
+};
 
 RegistrationContext::RegistrationContext() = default;
 RegistrationContext::~RegistrationContext() = default;
 
 Status
-RegistrationContext::Initialize(unsigned int, const size_t *, const double *, const std::vector<PyramidLevelView> &, const uint8_t *)
+RegistrationContext::Initialize(unsigned int,
+                                const size_t *,
+                                const double *,
+                                const std::vector<PyramidLevelView> &,
+                                const uint8_t *)
 {
   return Unavailable();
 }
@@ -135,7 +140,8 @@ RegistrationContext::UploadField(const float *)
 }
 void
 RegistrationContext::SetCooperativeSolve(bool)
-{}
+{
+}
 
 size_t
 RegistrationContext::AllocatedBytes() const
