@@ -20,6 +20,8 @@
 #include "itkMultiThreaderBase.h"
 #include "gtest/gtest.h"
 
+#include <cmath>
+#include <cstring>
 #include <random>
 
 namespace
@@ -211,3 +213,59 @@ TEST(JacobianDeterminant, LinearFieldGivesDetOfIPlusA)
   EXPECT_NEAR(range3.second, -1.5, 1e-5);
 }
 } // namespace
+
+// InterpolateAddPair computes the corner weights once for two images; each output must be its InterpolateAdd, bit for
+// bit (the density filter's force relies on it to give the same floats as before)
+TEST(InterpolateAddPair, EqualsTwoInterpolateAddsBitForBit)
+{
+  const itk::dmr::Grid<3>                grid(std::array<size_t, 3>{ 7, 5, 4 }, std::array<double, 3>{ 0.7, 1.1, 2.5 });
+  std::mt19937                           rng(11);
+  std::uniform_real_distribution<float>  value(-3.0f, 3.0f);
+  std::uniform_real_distribution<double> position(-1.5, 8.5); // inside, on and outside the border
+  std::vector<float>                     a(grid.numberOfPixels), b(grid.numberOfPixels * 3);
+  for (auto & x : a)
+  {
+    x = value(rng);
+  }
+  for (auto & x : b)
+  {
+    x = value(rng);
+  }
+  for (int trial = 0; trial < 2000; ++trial)
+  {
+    double c[3];
+    for (double & x : c)
+    {
+      x = trial % 7 == 0 ? std::floor(position(rng)) : position(rng); // whole indices too (zero weights)
+    }
+    const double w = trial % 2 ? 1.0 : 0.37;
+    double       sa = 0.25, sb[3] = { -1.0, 0.0, 2.0 }, pa = 0.25, pb[3] = { -1.0, 0.0, 2.0 };
+    itk::dmr::InterpolateAdd<3, 1>(grid, a.data(), c, w, &sa);
+    itk::dmr::InterpolateAdd<3, 3>(grid, b.data(), c, w, sb);
+    itk::dmr::InterpolateAddPair<3, 1, 3>(grid, a.data(), b.data(), c, w, &pa, pb);
+    ASSERT_EQ(std::memcmp(&pa, &sa, sizeof(double)), 0) << "trial " << trial;
+    ASSERT_EQ(std::memcmp(pb, sb, sizeof(sb)), 0) << "trial " << trial;
+  }
+}
+
+// the parallel maxima are the sequential ones
+TEST(FieldMaxima, ParallelEqualsSequential)
+{
+  const itk::dmr::Grid<2>               grid(std::array<size_t, 2>{ 301, 157 }, std::array<double, 2>{ 0.8, 1.3 });
+  std::mt19937                          rng(5);
+  std::uniform_real_distribution<float> value(-4.0f, 4.0f);
+  std::vector<float>                    v(grid.numberOfPixels * 2);
+  for (auto & x : v)
+  {
+    x = value(rng);
+  }
+  v[2 * 40000 + 1] = 60.0f; // one large value in a middle chunk
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetNumberOfWorkUnits(4);
+  EXPECT_EQ(itk::dmr::MaximumDisplacementInPixels<2>(grid, v.data(), threader),
+            itk::dmr::MaximumDisplacementInPixels<2>(grid, v.data()));
+  EXPECT_EQ(itk::dmr::MaximumDisplacementInPixels<2>(grid, v.data()), 60.0 / 1.3);
+  EXPECT_EQ(itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data(), threader),
+            itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()));
+  EXPECT_GT(itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()), 50.0 / 1.3);
+}

@@ -163,6 +163,74 @@ InterpolateAdd(const Grid<VDimension> & grid, const float * data, const double *
   }
 }
 
+/** InterpolateAdd of two images on the same grid at the same continuous index (NA and NB interleaved components):
+ * the corner weights are computed once; every output gets the very operations of its own InterpolateAdd call, so the
+ * sums are the same bit for bit. */
+template <unsigned int VDimension, unsigned int NA, unsigned int NB>
+inline void
+InterpolateAddPair(const Grid<VDimension> & grid,
+                   const float *            a,
+                   const float *            b,
+                   const double *           cidx,
+                   double                   w,
+                   double *                 outA,
+                   double *                 outB)
+{
+  size_t base[VDimension];
+  size_t step[VDimension];
+  double frac[VDimension];
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    const double hi = static_cast<double>(grid.size[k] - 1);
+    double       c = cidx[k] < 0.0 ? 0.0 : (cidx[k] > hi ? hi : cidx[k]);
+    double       f = std::floor(c);
+    size_t       i = static_cast<size_t>(f);
+    if (i >= grid.size[k] - 1)
+    {
+      i = grid.size[k] > 1 ? grid.size[k] - 2 : 0;
+      f = static_cast<double>(i);
+    }
+    base[k] = i * grid.stride[k];
+    step[k] = grid.size[k] > 1 ? grid.stride[k] : 0;
+    frac[k] = c - f;
+  }
+  size_t offset0 = 0;
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    offset0 += base[k];
+  }
+  for (unsigned int corner = 0; corner < (1u << VDimension); ++corner)
+  {
+    double weight = w;
+    size_t offset = offset0;
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      if (corner & (1u << k))
+      {
+        weight *= frac[k];
+        offset += step[k];
+      }
+      else
+      {
+        weight *= 1.0 - frac[k];
+      }
+    }
+    if (weight != 0.0)
+    {
+      const float * va = a + offset * NA;
+      const float * vb = b + offset * NB;
+      for (unsigned int c = 0; c < NA; ++c)
+      {
+        outA[c] += weight * static_cast<double>(va[c]);
+      }
+      for (unsigned int c = 0; c < NB; ++c)
+      {
+        outB[c] += weight * static_cast<double>(vb[c]);
+      }
+    }
+  }
+}
+
 /** Runs body(begin, end) over [0, n) in contiguous chunks through ITK's threader, so that
  * ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS and the filter's work-unit settings keep control. */
 template <typename TBody>

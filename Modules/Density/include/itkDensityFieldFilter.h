@@ -227,6 +227,9 @@ private:
   const void *              m_PyramidMoving{ nullptr };
   double                    m_IntensityRange{ 0.0 };
   std::vector<float>        m_GridForce;
+  // levels 1.. of the fixed pyramid interpolated at every fine pixel (they do not depend on the field; built on the
+  // first GenerateData after the pyramids where they take at most 256 MiB, else interpolated every time)
+  std::vector<std::vector<double>> m_FixedAtFinePixels;
 };
 } // namespace itk
 

@@ -382,6 +382,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
   m_PyramidMoving = moving;
   m_PyramidLevels = m_NumberOfLevels;
   m_PyramidComplete = complete;
+  m_FixedAtFinePixels.clear();
 }
 
 template <typename TF, typename TM, typename TD, typename TO>
@@ -424,7 +425,38 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   float *               gridForce = m_GridForce.data();
   const auto *          levels = m_Levels.data();
   const unsigned int    nLevels = m_NumberOfLevels;
-  const bool            warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
+  // The coarser fixed levels at the fine pixels do not change between updates: interpolated once (the same operations
+  // as below, so the same doubles) and kept while the pyramids are, where they take at most 256 MiB.
+  if (m_FixedAtFinePixels.empty() && nLevels > 1 && n * (nLevels - 1) * sizeof(double) <= (size_t(256) << 20))
+  {
+    m_FixedAtFinePixels.resize(nLevels - 1);
+    for (unsigned int l = 1; l < nLevels; ++l)
+    {
+      const PyramidLevel &  L = levels[l];
+      std::vector<double> & cache = m_FixedAtFinePixels[l - 1];
+      cache.resize(n);
+      dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+        for (size_t p = b; p < e; ++p)
+        {
+          const auto idx = grid.Index(p);
+          double     cf[D];
+          for (unsigned int r = 0; r < D; ++r)
+          {
+            cf[r] = L.Fc[r];
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
+            }
+          }
+          double t = 0.0;
+          dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
+          cache[p] = t;
+        }
+      });
+    }
+  }
+  const std::vector<std::vector<double>> & fixedAtFine = m_FixedAtFinePixels;
+  const bool                               warpedGradient = m_ForceGradient == ForceGradientEnum::WarpedMoving;
   // Eq. 3 sums level i over the pixels of level i. Evaluated at the fine pixels, each fine pixel stands for
   // (pixels of level i) / (fine pixels) of them.
   std::vector<double> levelWeight(nLevels);
@@ -499,12 +531,15 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
             {
               t = L.fixed[p]; // level 0 is the fixed image itself
             }
+            else if (!fixedAtFine.empty())
+            {
+              t = fixedAtFine[l - 1][p];
+            }
             else
             {
               dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
             }
-            dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0, &s);
-            dmr::InterpolateAdd<D, D>(L.movingGrid, L.movingGradient.data(), cm, 1.0, g);
+            dmr::InterpolateAddPair<D, 1, D>(L.movingGrid, L.moving.data(), L.movingGradient.data(), cm, 1.0, &s, g);
             const double residual = t - s;
             acc.mssd += levelWeight[l] * residual * residual;
             if (l == 0)
@@ -632,6 +667,7 @@ DensityFieldFilter<TF, TM, TD, TO>::ReleaseInternalBuffers()
 {
   std::vector<PyramidLevel>().swap(m_Levels);
   std::vector<float>().swap(m_GridForce);
+  std::vector<std::vector<double>>().swap(m_FixedAtFinePixels);
   m_PyramidTime = 0;
   m_PyramidFixed = nullptr;
   m_PyramidMoving = nullptr;

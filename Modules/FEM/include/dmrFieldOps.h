@@ -54,46 +54,62 @@ ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * ou
   });
 }
 
-/** Largest displacement in pixel units (max over pixels and axes of |v_k| / spacing_k). */
+/** Largest displacement in pixel units (max over pixels and axes of |v_k| / spacing_k); on the threader's work units
+ * when one is given (a maximum does not depend on the order). */
 template <unsigned int D>
 double
-MaximumDisplacementInPixels(const Grid<D> & grid, const float * v)
+MaximumDisplacementInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
 {
-  double m = 0.0;
-  for (size_t p = 0; p < grid.numberOfPixels; ++p)
-  {
-    for (unsigned int k = 0; k < D; ++k)
+  const size_t        nChunks = 64;
+  const size_t        chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  std::vector<double> partial(nChunks, 0.0);
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
+    double       m = 0.0;
+    for (size_t p = c * chunk; p < end; ++p)
     {
-      m = std::max(m, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        m = std::max(m, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+      }
     }
-  }
-  return m;
+    partial[c] = m;
+  });
+  return *std::max_element(partial.begin(), partial.end());
 }
 
 /** Largest difference of v between neighbouring pixels, in pixel units (max over pixels, axes k and components r
- * of |v_r(p + e_k) - v_r(p)| / spacing_r): a discrete bound on the displacement gradient. */
+ * of |v_r(p + e_k) - v_r(p)| / spacing_r): a discrete bound on the displacement gradient. On the threader's work units
+ * when one is given. */
 template <unsigned int D>
 double
-MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v)
+MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
 {
-  double m = 0.0;
-  for (size_t p = 0; p < grid.numberOfPixels; ++p)
-  {
-    const auto idx = grid.Index(p);
-    for (unsigned int k = 0; k < D; ++k)
+  const size_t        nChunks = 64;
+  const size_t        chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  std::vector<double> partial(nChunks, 0.0);
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
+    double       m = 0.0;
+    for (size_t p = c * chunk; p < end; ++p)
     {
-      if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
+      const auto idx = grid.Index(p);
+      for (unsigned int k = 0; k < D; ++k)
       {
-        continue;
-      }
-      const size_t q = p + grid.stride[k];
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        m = std::max(m, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
+        if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
+        {
+          continue;
+        }
+        const size_t q = p + grid.stride[k];
+        for (unsigned int r = 0; r < D; ++r)
+        {
+          m = std::max(m, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
+        }
       }
     }
-  }
-  return m;
+    partial[c] = m;
+  });
+  return *std::max_element(partial.begin(), partial.end());
 }
 
 /** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until both its largest
@@ -111,8 +127,8 @@ ExponentialField(const Grid<D> &      grid,
                  MultiThreaderBase *  threader)
 {
   const size_t n = grid.numberOfPixels * D;
-  const double maxNorm =
-    std::max(MaximumDisplacementInPixels<D>(grid, v), MaximumNeighbourDifferenceInPixels<D>(grid, v));
+  const double maxNorm = std::max(MaximumDisplacementInPixels<D>(grid, v, threader),
+                                  MaximumNeighbourDifferenceInPixels<D>(grid, v, threader));
   unsigned int squarings = 0;
   while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
   {

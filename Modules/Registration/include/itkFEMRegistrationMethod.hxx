@@ -314,7 +314,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       record,
       [&](double scale) {
         bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
-        const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data());
+        const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data(), threader);
         dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
         dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader);
         this->WriteGridFieldToImage(update, field);
