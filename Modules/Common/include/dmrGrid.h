@@ -107,11 +107,12 @@ struct Grid
   }
 };
 
-/** Multilinear interpolation of NComp interleaved float components at a continuous index; positions outside the
- * image are clamped to the border (zero-flux extension). Adds w * value into out[]. */
-template <unsigned int VDimension, unsigned int NComp>
+/** The corners of the multilinear interpolation at a continuous index, clamped to the border (zero-flux extension):
+ * body(offset, weight) for every corner whose weight w x prod(frac or 1 - frac) is not zero, in a fixed corner order
+ * (offset: the corner's pixel in the grid). */
+template <unsigned int VDimension, typename TBody>
 inline void
-InterpolateAdd(const Grid<VDimension> & grid, const float * data, const double * cidx, double w, double * out)
+ForEachInterpolationCorner(const Grid<VDimension> & grid, const double * cidx, double w, TBody && body)
 {
   size_t base[VDimension];
   size_t step[VDimension];
@@ -154,13 +155,24 @@ InterpolateAdd(const Grid<VDimension> & grid, const float * data, const double *
     }
     if (weight != 0.0)
     {
-      const float * v = data + offset * NComp;
-      for (unsigned int c = 0; c < NComp; ++c)
-      {
-        out[c] += weight * static_cast<double>(v[c]);
-      }
+      body(offset, weight);
     }
   }
+}
+
+/** Multilinear interpolation of NComp interleaved float components at a continuous index; positions outside the
+ * image are clamped to the border (zero-flux extension). Adds w * value into out[]. */
+template <unsigned int VDimension, unsigned int NComp>
+inline void
+InterpolateAdd(const Grid<VDimension> & grid, const float * data, const double * cidx, double w, double * out)
+{
+  ForEachInterpolationCorner<VDimension>(grid, cidx, w, [&](size_t offset, double weight) {
+    const float * v = data + offset * NComp;
+    for (unsigned int c = 0; c < NComp; ++c)
+    {
+      out[c] += weight * static_cast<double>(v[c]);
+    }
+  });
 }
 
 /** InterpolateAdd of two images on the same grid at the same continuous index (NA and NB interleaved components):
@@ -176,59 +188,18 @@ InterpolateAddPair(const Grid<VDimension> & grid,
                    double *                 outA,
                    double *                 outB)
 {
-  size_t base[VDimension];
-  size_t step[VDimension];
-  double frac[VDimension];
-  for (unsigned int k = 0; k < VDimension; ++k)
-  {
-    const double hi = static_cast<double>(grid.size[k] - 1);
-    double       c = cidx[k] < 0.0 ? 0.0 : (cidx[k] > hi ? hi : cidx[k]);
-    double       f = std::floor(c);
-    size_t       i = static_cast<size_t>(f);
-    if (i >= grid.size[k] - 1)
+  ForEachInterpolationCorner<VDimension>(grid, cidx, w, [&](size_t offset, double weight) {
+    const float * va = a + offset * NA;
+    const float * vb = b + offset * NB;
+    for (unsigned int c = 0; c < NA; ++c)
     {
-      i = grid.size[k] > 1 ? grid.size[k] - 2 : 0;
-      f = static_cast<double>(i);
+      outA[c] += weight * static_cast<double>(va[c]);
     }
-    base[k] = i * grid.stride[k];
-    step[k] = grid.size[k] > 1 ? grid.stride[k] : 0;
-    frac[k] = c - f;
-  }
-  size_t offset0 = 0;
-  for (unsigned int k = 0; k < VDimension; ++k)
-  {
-    offset0 += base[k];
-  }
-  for (unsigned int corner = 0; corner < (1u << VDimension); ++corner)
-  {
-    double weight = w;
-    size_t offset = offset0;
-    for (unsigned int k = 0; k < VDimension; ++k)
+    for (unsigned int c = 0; c < NB; ++c)
     {
-      if (corner & (1u << k))
-      {
-        weight *= frac[k];
-        offset += step[k];
-      }
-      else
-      {
-        weight *= 1.0 - frac[k];
-      }
+      outB[c] += weight * static_cast<double>(vb[c]);
     }
-    if (weight != 0.0)
-    {
-      const float * va = a + offset * NA;
-      const float * vb = b + offset * NB;
-      for (unsigned int c = 0; c < NA; ++c)
-      {
-        outA[c] += weight * static_cast<double>(va[c]);
-      }
-      for (unsigned int c = 0; c < NB; ++c)
-      {
-        outB[c] += weight * static_cast<double>(vb[c]);
-      }
-    }
-  }
+  });
 }
 
 /** Runs body(begin, end) over [0, n) in contiguous chunks through ITK's threader, so that
