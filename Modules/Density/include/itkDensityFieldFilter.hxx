@@ -425,8 +425,23 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   float *               gridForce = m_GridForce.data();
   const auto *          levels = m_Levels.data();
   const unsigned int    nLevels = m_NumberOfLevels;
-  // The coarser fixed levels at the fine pixels do not change between updates: interpolated once (the same operations
-  // as below, so the same doubles) and kept while the pyramids are, where they take at most 256 MiB.
+  // a coarser fixed level (l > 0) at a fine pixel, interpolated at FA idx + Fc
+  auto fixedLevelAt = [](const PyramidLevel & L, const std::array<int64_t, D> & idx) {
+    double cf[D];
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      cf[r] = L.Fc[r];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
+      }
+    }
+    double t = 0.0;
+    dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
+    return t;
+  };
+  // The coarser fixed levels at the fine pixels do not change between updates: interpolated once and kept while the
+  // pyramids are, where they take at most 256 MiB; otherwise the force loop interpolates them (the same doubles).
   if (m_FixedAtFinePixels.empty() && nLevels > 1 && n * (nLevels - 1) * sizeof(double) <= (size_t(256) << 20))
   {
     m_FixedAtFinePixels.resize(nLevels - 1);
@@ -438,19 +453,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
       dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
         for (size_t p = b; p < e; ++p)
         {
-          const auto idx = grid.Index(p);
-          double     cf[D];
-          for (unsigned int r = 0; r < D; ++r)
-          {
-            cf[r] = L.Fc[r];
-            for (unsigned int k = 0; k < D; ++k)
-            {
-              cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
-            }
-          }
-          double t = 0.0;
-          dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
-          cache[p] = t;
+          cache[p] = fixedLevelAt(L, grid.Index(p));
         }
       });
     }
@@ -515,30 +518,19 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
           for (unsigned int l = 0; l < nLevels; ++l)
           {
             const PyramidLevel & L = levels[l];
-            double               cf[D], cm[D];
+            double               cm[D];
             for (unsigned int r = 0; r < D; ++r)
             {
-              cf[r] = L.Fc[r];
               cm[r] = L.Mc[r];
               for (unsigned int k = 0; k < D; ++k)
               {
-                cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
                 cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
               }
             }
-            double t = 0.0, s = 0.0, g[D] = {};
-            if (l == 0)
-            {
-              t = L.fixed[p]; // level 0 is the fixed image itself
-            }
-            else if (!fixedAtFine.empty())
-            {
-              t = fixedAtFine[l - 1][p];
-            }
-            else
-            {
-              dmr::InterpolateAdd<D, 1>(L.fixedGrid, L.fixed.data(), cf, 1.0, &t);
-            }
+            // level 0 is the fixed image itself
+            const double t = l == 0 ? static_cast<double>(L.fixed[p])
+                                    : (fixedAtFine.empty() ? fixedLevelAt(L, idx) : fixedAtFine[l - 1][p]);
+            double       s = 0.0, g[D] = {};
             dmr::InterpolateAddPair<D, 1, D>(L.movingGrid, L.moving.data(), L.movingGradient.data(), cm, 1.0, &s, g);
             const double residual = t - s;
             acc.mssd += levelWeight[l] * residual * residual;
