@@ -17,8 +17,10 @@
  *=========================================================================*/
 #include "dmrDelaunay3D.h"
 #include "itkMacro.h"
+#include "itkMultiThreaderBase.h"
 #include "gtest/gtest.h"
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 
@@ -307,4 +309,246 @@ TEST(Delaunay3D, NudgingThrowsWhenNothingMayMove)
   EXPECT_THROW(itk::dmr::NonDegenerateDelaunay3D(xyz, wrongSize, 0.05, tetrahedra, flatShape, rounds),
                itk::ExceptionObject);
 }
+
+/** Nodes like the dual mesh's in the box [0,a] x [0,b] x [0,c]: its corners, jittered lattices of spacing h inside,
+ * on every face (exactly coplanar) and on every edge; `graded`: the lattice coordinate t in [0, 1] is mapped to t^1.6,
+ * so the nodes crowd towards one corner as where a registration needs them. `random`: uniform inner and face nodes
+ * instead (slivers with large circumspheres along the edges and faces). */
+std::vector<double>
+DualMeshLikeNodes(double a, double b, double c, double h, bool graded, bool random, uint32_t seed)
+{
+  std::vector<double>                    xyz = BoxWithInnerPoints(a, b, c, 0, 1);
+  std::mt19937                           rng(seed);
+  std::uniform_real_distribution<double> jitter(-0.3, 0.3), u(0.02, 0.98);
+  const double                           side[3] = { a, b, c };
+  int                                    count[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    count[k] = std::max(1, static_cast<int>(side[k] / h));
+  }
+  // coordinate of lattice position i (of count[k]) along axis k, jittered unless on the box
+  auto at = [&](unsigned int k, int i) {
+    const double t = random ? u(rng) : (i + 0.5 + jitter(rng)) / count[k];
+    return side[k] * (graded ? std::pow(t, 1.6) : t);
+  };
+  // every node whose lattice index along each axis is in [-1, count]: -1 is the lower plane, count the upper one
+  for (int i = -1; i <= count[2]; ++i)
+  {
+    for (int j = -1; j <= count[1]; ++j)
+    {
+      for (int k = -1; k <= count[0]; ++k)
+      {
+        const int index[3] = { k, j, i };
+        int       onPlanes = 0;
+        double    x[3];
+        for (unsigned int m = 0; m < 3; ++m)
+        {
+          const bool lower = index[m] < 0, upper = index[m] >= count[m];
+          onPlanes += lower || upper ? 1 : 0;
+          x[m] = lower ? 0.0 : (upper ? side[m] : at(m, index[m]));
+        }
+        if (onPlanes < 3) // the corners are in already
+        {
+          xyz.insert(xyz.end(), x, x + 3);
+        }
+      }
+    }
+  }
+  return xyz;
+}
+
+/** The defining properties of the Delaunay tetrahedralization of nodes whose hull is the box [0,a] x [0,b] x [0,c]:
+ * positive tetrahedra filling the box, every inner face shared by two of them, no node inside a circumsphere. */
+void
+ExpectDelaunayOfBox(const std::vector<double> & xyz, const Tetrahedra & tetrahedra, double a, double b, double c)
+{
+  double                                   total = 0.0;
+  std::vector<std::array<int32_t, 3>>      faces;
+  const std::vector<std::array<double, 3>> none;
+  for (const auto & t : tetrahedra)
+  {
+    const double v = Volume(xyz, t);
+    ASSERT_GT(v, 0.0);
+    total += v;
+    for (unsigned int f = 0; f < 4; ++f)
+    {
+      std::array<int32_t, 3> face;
+      for (unsigned int v2 = 0, m = 0; v2 < 4; ++v2)
+      {
+        if (v2 != f)
+        {
+          face[m++] = t[v2];
+        }
+      }
+      std::sort(face.begin(), face.end());
+      faces.push_back(face);
+    }
+  }
+  EXPECT_NEAR(total, a * b * c, 1e-9 * a * b * c);
+  std::sort(faces.begin(), faces.end());
+  size_t single = 0, shared = 0;
+  for (size_t i = 0; i < faces.size();)
+  {
+    size_t j = i;
+    while (j < faces.size() && faces[j] == faces[i])
+    {
+      ++j;
+    }
+    ASSERT_LE(j - i, 2u) << "a face of more than two tetrahedra";
+    if (j - i == 2)
+    {
+      ++shared;
+    }
+    else
+    {
+      // a face of one tetrahedron lies on the box
+      bool         onBox = false;
+      const double side[3] = { a, b, c };
+      for (unsigned int k = 0; k < 3 && !onBox; ++k)
+      {
+        for (const double plane : { 0.0, side[k] })
+        {
+          onBox = onBox || (xyz[3 * faces[i][0] + k] == plane && xyz[3 * faces[i][1] + k] == plane &&
+                            xyz[3 * faces[i][2] + k] == plane);
+        }
+      }
+      EXPECT_TRUE(onBox) << "an inner face of only one tetrahedron";
+      ++single;
+    }
+    i = j;
+  }
+  EXPECT_GT(shared, single);
+  // empty circumspheres (a grid of buckets keeps this near-linear)
+  const size_t n = xyz.size() / 3;
+  for (const auto & t : tetrahedra)
+  {
+    double m[3][3], rhs[3], centre[3];
+    for (unsigned int r = 0; r < 3; ++r)
+    {
+      rhs[r] = 0.0;
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        m[r][k] = 2.0 * (xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k]);
+        rhs[r] += xyz[3 * t[r + 1] + k] * xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k] * xyz[3 * t[0] + k];
+      }
+    }
+    auto det3 = [](const double(&q)[3][3]) {
+      return q[0][0] * (q[1][1] * q[2][2] - q[1][2] * q[2][1]) - q[0][1] * (q[1][0] * q[2][2] - q[1][2] * q[2][0]) +
+             q[0][2] * (q[1][0] * q[2][1] - q[1][1] * q[2][0]);
+    };
+    const double det = det3(m);
+    for (unsigned int col = 0; col < 3; ++col)
+    {
+      double mc[3][3];
+      for (unsigned int r = 0; r < 3; ++r)
+      {
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          mc[r][k] = k == col ? rhs[r] : m[r][k];
+        }
+      }
+      centre[col] = det3(mc) / det;
+    }
+    auto distance2 = [&](size_t i) {
+      double s = 0.0;
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        s += (xyz[3 * i + k] - centre[k]) * (xyz[3 * i + k] - centre[k]);
+      }
+      return s;
+    };
+    const double radius2 = distance2(static_cast<size_t>(t[0]));
+    for (size_t i = 0; i < n; ++i)
+    {
+      if (distance2(i) < radius2 * (1.0 - 1e-9))
+      {
+        ADD_FAILURE() << "node " << i << " inside the circumsphere of a tetrahedron";
+        return;
+      }
+    }
+  }
+}
+
+itk::MultiThreaderBase::Pointer
+Threader(unsigned int workUnits)
+{
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(workUnits);
+  threader->SetNumberOfWorkUnits(workUnits);
+  return threader;
+}
 } // namespace
+
+TEST(Delaunay3D, BlocksGiveTheDelaunayTetrahedralizationWhateverTheWorkUnits)
+{
+  for (const bool graded : { false, true })
+  {
+    const auto xyz = DualMeshLikeNodes(300.0, 260.0, 180.0, 16.0, graded, false, graded ? 5u : 4u);
+    Tetrahedra reference;
+    ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, reference, Threader(1)));
+    ExpectDelaunayOfBox(xyz, reference, 300.0, 260.0, 180.0);
+    for (const unsigned int workUnits : { 2u, 7u })
+    {
+      Tetrahedra t;
+      ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, t, Threader(workUnits)));
+      EXPECT_EQ(t, reference) << workUnits << " work units";
+    }
+    // Delaunay3D takes this path
+    Tetrahedra t;
+    EXPECT_EQ(itk::dmr::Delaunay3D(xyz, t, Threader(2)), 0u);
+    EXPECT_EQ(t, reference);
+    // and TetGen finds the same tetrahedra (no cospherical nodes here)
+    Tetrahedra tetgen;
+    EXPECT_EQ(itk::dmr::TetGenDelaunay3D(xyz, tetgen), 0u);
+    auto canonical = [](Tetrahedra ts) {
+      for (auto & x : ts)
+      {
+        std::sort(x.begin(), x.end());
+      }
+      std::sort(ts.begin(), ts.end());
+      return ts;
+    };
+    EXPECT_EQ(canonical(tetgen), canonical(reference));
+  }
+}
+
+TEST(Delaunay3D, BlocksRefuseWhatTheyCannotVouchFor)
+{
+  const auto xyz = DualMeshLikeNodes(300.0, 260.0, 180.0, 16.0, true, false, 6u);
+  Tetrahedra reference;
+  ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, reference, Threader(2)));
+  // smaller margins: blocks that cannot vouch for their tetrahedra are redone with larger ones; the result is either
+  // refused or the same tetrahedralization, never another one
+  size_t redone = 0;
+  for (const double margin : { 0.05, 0.2, 0.4, 0.7, 1.0 })
+  {
+    Tetrahedra                        t;
+    itk::dmr::BlockDelaunayStatistics statistics;
+    if (itk::dmr::BlockDelaunay3D(xyz, t, Threader(2), margin, &statistics))
+    {
+      EXPECT_EQ(t, reference) << "margin " << margin;
+    }
+    else
+    {
+      EXPECT_TRUE(t.empty());
+    }
+    EXPECT_GT(statistics.numberOfBlocks, 1u);
+    redone += statistics.numberOfRuns - statistics.numberOfBlocks;
+  }
+  EXPECT_GT(redone, 0u) << "no margin was too small: the check was not exercised";
+  // uniform random nodes: slivers along the box with large circumspheres; refused or right, never wrong
+  const auto random = DualMeshLikeNodes(300.0, 260.0, 180.0, 16.0, false, true, 8u);
+  Tetrahedra t;
+  if (itk::dmr::BlockDelaunay3D(random, t, Threader(2)))
+  {
+    ExpectDelaunayOfBox(random, t, 300.0, 260.0, 180.0);
+  }
+  // not the box as hull (a corner missing), or too few nodes for two blocks
+  std::vector<double> noCorner(xyz.begin() + 3, xyz.end());
+  EXPECT_FALSE(itk::dmr::BlockDelaunay3D(noCorner, t, Threader(2)));
+  EXPECT_TRUE(t.empty());
+  EXPECT_FALSE(itk::dmr::BlockDelaunay3D(BoxWithInnerPoints(3.0, 3.0, 3.0, 100, 11), t, Threader(2)));
+  // Delaunay3D falls back to TetGen there, with the same defining properties
+  EXPECT_EQ(itk::dmr::Delaunay3D(noCorner, t, Threader(2)), 0u);
+  ASSERT_FALSE(t.empty());
+}

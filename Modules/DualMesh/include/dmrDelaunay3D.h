@@ -26,13 +26,21 @@
 
 namespace itk
 {
+class MultiThreaderBase;
+
 namespace dmr
 {
-/** Delaunay tetrahedralization (TetGen 1.5, exact predicates) of 3D nodes (x, y, z interleaved). It fills the convex
+/** Margin of BlockDelaunay3D as Delaunay3D uses it, in mean node spacings. */
+constexpr double DefaultBlockMargin = 2.0;
+
+/** Delaunay tetrahedralization (exact predicates) of 3D nodes (x, y, z interleaved). It fills the convex
  * hull of the nodes. Nodes at the same position are merged: tetrahedra refer to the first node at a position. Every
- * tetrahedron is positively oriented (det [x1 - x0, x2 - x0, x3 - x0] > 0 in exact arithmetic); TetGen never outputs
- * a tetrahedron of exactly zero volume, but near-coplanar nodes can give near-flat ones (see NonDegenerateDelaunay3D).
- * The result depends only on the input (TetGen's point-order randomisation uses a fixed seed).
+ * tetrahedron is positively oriented (det [x1 - x0, x2 - x0, x3 - x0] > 0 in exact arithmetic); no tetrahedron has
+ * exactly zero volume, but near-coplanar nodes can give near-flat ones (see NonDegenerateDelaunay3D).
+ * Node sets whose convex hull is their bounding box (its 8 corners are nodes, as in the dual mesh) and that are large
+ * enough for two or more blocks go through BlockDelaunay3D, on the threader's work units; the others, and those whose
+ * blocks cannot vouch for their result, through TetGen 1.5 (whose point-order randomisation uses a fixed seed).
+ * Either way the result depends only on the input, not on the number of work units.
  * Fewer than 4 distinct nodes, or all of them within 1e-12 of their extent from one plane, give no tetrahedra
  * (TetGen 1.5 crashes on a coplanar set). Throws an itk::ExceptionObject when TetGen fails. Returns the number of
  * nodes merged into an earlier one. (TetGen stays out of every public header: this file is its only interface.)
@@ -43,7 +51,38 @@ namespace dmr
  * points). The unconstrained Delaunay tetrahedralization of the nodes is the dual of the Voronoi diagram of the
  * sites, so it holds most of the discrete CVT's adjacency edges anyway; DualMeshFilter reports how many it misses. */
 DynamicMeshRegistration_EXPORT size_t
-Delaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra);
+Delaunay3D(const std::vector<double> &           xyz,
+           std::vector<std::array<int32_t, 4>> & tetrahedra,
+           MultiThreaderBase *                   threader = nullptr);
+
+/** Delaunay3D by one TetGen 1.5 run, whatever the nodes (Delaunay3D's fallback). */
+DynamicMeshRegistration_EXPORT size_t
+TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra);
+
+/** The Delaunay tetrahedralization of nodes whose convex hull is their bounding box, by blocks: the box is cut into
+ * blocks of about 375 nodes (at most 64 blocks; false, with no tetrahedra, when it would be one block or the hull is
+ * not the box). Each block, in parallel on the threader's work units, triangulates (CGAL, exact predicates, symbolic
+ * perturbation: one triangulation per node set even when nodes are cospherical) the nodes of its region extended by
+ * marginFactor mean node spacings, (volume / nodes)^(1/3), and keeps the tetrahedra it owns (circumcentre in its
+ * region) whose circumsphere, within the box, lies inside the extended region: no node outside it can be in that
+ * sphere, so each kept tetrahedron is a Delaunay tetrahedron of all the nodes. A block that owns a tetrahedron it
+ * cannot vouch for is redone, up to twice, with the margin that tetrahedron's sphere asks for (at least double). The
+ * result is accepted only when every face shared with another block's tetrahedron is held by exactly two kept
+ * tetrahedra, box faces aside, and the kept volume equals the box's to 1e-9: then the kept tetrahedra are the whole
+ * Delaunay tetrahedralization. Otherwise false (no tetrahedra). Each tetrahedron is written with its vertices
+ * ascending, the last two swapped where that keeps it positive, the blocks in order, each block's sorted: the output
+ * depends only on the nodes. */
+struct BlockDelaunayStatistics
+{
+  unsigned int numberOfBlocks{ 0 }; // 0: not applicable
+  size_t       numberOfRuns{ 0 };   // block triangulations, the redone ones included
+};
+DynamicMeshRegistration_EXPORT bool
+BlockDelaunay3D(const std::vector<double> &           xyz,
+                std::vector<std::array<int32_t, 4>> & tetrahedra,
+                MultiThreaderBase *                   threader,
+                double                                marginFactor = DefaultBlockMargin,
+                BlockDelaunayStatistics *             statistics = nullptr);
 
 /** Threshold of NonDegenerateDelaunay3D as DualMeshFilter uses it: a tetrahedron with shape below 1e-6 counts as flat.
  * Its four nodes are then coplanar to within a millionth of its size: its volume is still far above double round-off
@@ -72,7 +111,8 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
                         double                                maximumStep,
                         std::vector<std::array<int32_t, 4>> & tetrahedra,
                         double                                minimumShape,
-                        unsigned int                          maximumRounds);
+                        unsigned int                          maximumRounds,
+                        MultiThreaderBase *                   threader = nullptr);
 } // namespace dmr
 } // namespace itk
 

@@ -338,6 +338,8 @@ CompactDualMesh(const Grid<D> &                                 grid,
 /** The dual mesh (grid frame) of a label image given by its summary; itk::DualMeshFilter documents the node rules.
  * sitesGridFrame: D coordinates per cell (the site of cell c at D c, grid frame), used for the inner cells; nullptr
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
+ * threader: the work units of the 3D Delaunay tetrahedralization (Delaunay3D; nullptr: serial); the mesh does not
+ * depend on it.
  * Throws an itk::ExceptionObject for a cell without voxels, a summary of another grid, a 3D grid thinner than 2
  * voxels, or a mesh that does not tile the box. */
 template <unsigned int D>
@@ -346,7 +348,8 @@ BuildDualMesh(const Grid<D> &      grid,
               const LabelSummary & summary,
               const double *       sitesGridFrame,
               bool                 snapToBoxEdges = true,
-              DualMeshStatistics * statistics = nullptr)
+              DualMeshStatistics * statistics = nullptr,
+              MultiThreaderBase *  threader = nullptr)
 {
   static_assert(D == 2 || D == 3, "the dual mesh is defined in 2D (triangles) and 3D (tetrahedra)");
   if (summary.dimension != D)
@@ -520,8 +523,8 @@ BuildDualMesh(const Grid<D> &      grid,
     {
       minimumSpacing = std::min(minimumSpacing, grid.spacing[k]);
     }
-    stats.numberOfPerturbedNodes =
-      NonDegenerateDelaunay3D(nodes, freeAxes, 0.25 * minimumSpacing, elements, DefaultMinimumTetrahedronShape, 12);
+    stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(
+      nodes, freeAxes, 0.25 * minimumSpacing, elements, DefaultMinimumTetrahedronShape, 12, threader);
     // how much of the CVT adjacency between inner cells the tetrahedralization holds
     for (const uint64_t key : summary.adjacentPairs)
     {

@@ -45,10 +45,11 @@ namespace itk
  * voxels on an edge line at the centre of its voxels on the edge line where it has most of them, the two other
  * coordinates exactly on the edge; else a cell with face voxels at the centre of its voxels on the face where it has
  * most, exactly on that face plane; else the site. Edge snapping spreads nodes along the 12 box edges instead of
- * leaving long corner-to-corner hull edges with thin tetrahedra along them. All nodes are tetrahedralized by
- * TetGen's Delaunay tetrahedralization without constraints (TetGen 1.5 cannot take free inner segments as
- * constraints without Steiner points; the Delaunay tetrahedralization of the sites is the dual of their Voronoi
- * diagram and so holds most of the CVT adjacency: GetNumberOfMissingAdjacencyEdges() says how much it misses).
+ * leaving long corner-to-corner hull edges with thin tetrahedra along them. All nodes are tetrahedralized by their
+ * Delaunay tetrahedralization without constraints (TetGen 1.5 cannot take free inner segments as constraints without
+ * Steiner points; the Delaunay tetrahedralization of the sites is the dual of their Voronoi diagram and so holds most
+ * of the CVT adjacency: GetNumberOfMissingAdjacencyEdges() says how much it misses), computed by blocks on the
+ * filter's work units (CGAL) where the nodes allow it, else by one TetGen run (dmr::Delaunay3D).
  * A tetrahedron flatter than dmr::DefaultMinimumTetrahedronShape (6 sqrt(2) V / L^3 < 1e-6, which only a
  * near-degenerate node set gives, e.g. a symmetric CVT with rounded centroids) is removed by nudging its non-corner
  * nodes (inner ones freely, face nodes within their face, edge nodes along their edge) by a deterministic step of

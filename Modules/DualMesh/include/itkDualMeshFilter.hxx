@@ -90,8 +90,12 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData()
       }
     }
     dmr::DualMeshStatistics statistics;
-    m_SimplexMesh = dmr::BuildDualMesh<D>(
-      grid, summary, sitesGridFrame.empty() ? nullptr : sitesGridFrame.data(), m_SnapToBoxEdges, &statistics);
+    m_SimplexMesh = dmr::BuildDualMesh<D>(grid,
+                                          summary,
+                                          sitesGridFrame.empty() ? nullptr : sitesGridFrame.data(),
+                                          m_SnapToBoxEdges,
+                                          &statistics,
+                                          this->GetMultiThreader());
     m_NumberOfSkippedConstraints = static_cast<SizeValueType>(statistics.numberOfSkippedConstraints);
     m_NumberOfBoundaryNodes = static_cast<SizeValueType>(statistics.numberOfBoundaryNodes);
     m_NumberOfInnerAdjacencyEdges = static_cast<SizeValueType>(statistics.numberOfInnerAdjacencyEdges);

@@ -17,7 +17,12 @@
  *=========================================================================*/
 #include "dmrDelaunay3D.h"
 
+#include "dmrGrid.h"
 #include "itkMacro.h"
+#include <CGAL/Delaunay_triangulation_3.h>
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Triangulation_cell_base_with_info_3.h>
+#include <CGAL/Triangulation_vertex_base_with_info_3.h>
 #include <tetgen.h>
 #include <algorithm>
 #include <cmath>
@@ -29,6 +34,11 @@ namespace dmr
 {
 namespace
 {
+/** Nodes per block (owned region) of the block decomposition, and the most blocks. */
+constexpr size_t       BlockNodes = 375;
+constexpr unsigned int MaximumBlocks = 64;
+constexpr unsigned int BlockRounds = 3;
+
 /** For every node the first node at the same position (itself when it is the first). */
 std::vector<int32_t>
 FirstAtSamePosition(const std::vector<double> & xyz)
@@ -47,6 +57,22 @@ FirstAtSamePosition(const std::vector<double> & xyz)
     first[i] = same ? first[order[k - 1]] : i; // stable sort: the lowest index comes first in a run
   }
   return first;
+}
+
+/** The nodes that are the first at their position, in node order. */
+std::vector<int32_t>
+UniqueNodes(const std::vector<double> & xyz)
+{
+  const std::vector<int32_t> first = FirstAtSamePosition(xyz);
+  std::vector<int32_t>       unique;
+  for (size_t i = 0; i < first.size(); ++i)
+  {
+    if (first[i] == static_cast<int32_t>(i))
+    {
+      unique.push_back(static_cast<int32_t>(i));
+    }
+  }
+  return unique;
 }
 
 uint64_t
@@ -138,10 +164,42 @@ LongestEdge(const double * p[4])
   }
   return std::sqrt(longest);
 }
-} // namespace
 
+/** Circumcentre and radius of a tetrahedron; false when it is flat (no finite circumsphere in double). */
+bool
+Circumsphere(const double * a, const double * b, const double * c, const double * d, double * centre, double & radius)
+{
+  double u[3], v[3], w[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    u[k] = b[k] - a[k];
+    v[k] = c[k] - a[k];
+    w[k] = d[k] - a[k];
+  }
+  const double uu = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+  const double vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  const double ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+  const double vxw[3] = { v[1] * w[2] - v[2] * w[1], v[2] * w[0] - v[0] * w[2], v[0] * w[1] - v[1] * w[0] };
+  const double wxu[3] = { w[1] * u[2] - w[2] * u[1], w[2] * u[0] - w[0] * u[2], w[0] * u[1] - w[1] * u[0] };
+  const double uxv[3] = { u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0] };
+  const double det = 2.0 * (u[0] * vxw[0] + u[1] * vxw[1] + u[2] * vxw[2]);
+  if (det == 0.0)
+  {
+    return false;
+  }
+  double o[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    o[k] = (uu * vxw[k] + vv * wxu[k] + ww * uxv[k]) / det;
+    centre[k] = a[k] + o[k];
+  }
+  radius = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+  return std::isfinite(radius) && std::isfinite(centre[0]) && std::isfinite(centre[1]) && std::isfinite(centre[2]);
+}
+
+/** Signed volume x 6: det [b - a, c - a, d - a]. */
 double
-TetrahedronShape(const double * a, const double * b, const double * c, const double * d)
+SixVolume(const double * a, const double * b, const double * c, const double * d)
 {
   double m[3][3];
   for (unsigned int r = 0; r < 3; ++r)
@@ -150,9 +208,375 @@ TetrahedronShape(const double * a, const double * b, const double * c, const dou
     m[r][1] = c[r] - a[r];
     m[r][2] = d[r] - a[r];
   }
-  const double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
-                     m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-                     m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+  return m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+         m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+}
+
+/** The vertices in ascending order, then the last two swapped when that order has the other orientation: one
+ * canonical form per oriented tetrahedron. */
+std::array<int32_t, 4>
+CanonicalTetrahedron(std::array<int32_t, 4> t)
+{
+  bool odd = false; // parity of the sorting permutation (insertion sort: one swap flips it)
+  for (unsigned int i = 1; i < 4; ++i)
+  {
+    for (unsigned int j = i; j > 0 && t[j - 1] > t[j]; --j)
+    {
+      std::swap(t[j - 1], t[j]);
+      odd = !odd;
+    }
+  }
+  if (odd)
+  {
+    std::swap(t[2], t[3]);
+  }
+  return t;
+}
+
+using BlockKernel = CGAL::Exact_predicates_inexact_constructions_kernel;
+using BlockVertex = CGAL::Triangulation_vertex_base_with_info_3<int32_t, BlockKernel>;
+using BlockCell = CGAL::Triangulation_cell_base_with_info_3<int32_t, BlockKernel>;
+using BlockTds = CGAL::Triangulation_data_structure_3<BlockVertex, BlockCell>;
+using BlockTriangulation = CGAL::Delaunay_triangulation_3<BlockKernel, BlockTds>;
+
+/** What one block contributes: its accepted tetrahedra (canonical, sorted), the faces it shares with other blocks'
+ * tetrahedra, the volume it covers, and whether every tetrahedron it owns could be vouched for. */
+struct BlockResult
+{
+  std::vector<std::array<int32_t, 4>> tetrahedra;
+  std::vector<std::array<int32_t, 3>> crossFaces;
+  double                              sixVolume{ 0.0 };
+  bool                                complete{ false };
+  double                              neededMargin{ 0.0 }; // when incomplete: the margin its spheres asked for
+  std::vector<double>                 ownerNeeds; // per block: the margin it needs to see a tetrahedron it owns
+};
+
+/** The block decomposition of Delaunay3D (see BlockDelaunay3D in the header): false when it does not apply or cannot
+ * vouch for its result. `unique`: the distinct nodes. */
+bool
+BlockDelaunay(const std::vector<double> &           xyz,
+              const std::vector<int32_t> &          unique,
+              MultiThreaderBase *                   threader,
+              double                                marginFactor,
+              std::vector<std::array<int32_t, 4>> & tetrahedra,
+              BlockDelaunayStatistics *             statistics)
+{
+  BlockDelaunayStatistics   unused;
+  BlockDelaunayStatistics & stats = statistics ? *statistics : unused;
+  stats = BlockDelaunayStatistics{};
+  const size_t n = unique.size();
+  if (n < 4 || !(marginFactor > 0.0))
+  {
+    return false;
+  }
+  double lo[3], hi[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    lo[k] = hi[k] = xyz[3 * unique[0] + k];
+  }
+  for (int32_t i : unique)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      lo[k] = std::min(lo[k], xyz[3 * i + k]);
+      hi[k] = std::max(hi[k], xyz[3 * i + k]);
+    }
+  }
+  // the convex hull must be the bounding box: its 8 corners are nodes
+  bool corner[8] = {};
+  for (int32_t i : unique)
+  {
+    unsigned int mask = 0;
+    bool         atCorner = true;
+    for (unsigned int k = 0; k < 3 && atCorner; ++k)
+    {
+      const double x = xyz[3 * i + k];
+      atCorner = x == lo[k] || x == hi[k];
+      mask |= x == hi[k] ? 1u << k : 0u;
+    }
+    if (atCorner)
+    {
+      corner[mask] = true;
+    }
+  }
+  const double extent[3] = { hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2] };
+  if (!std::all_of(corner, corner + 8, [](bool c) { return c; }) || !(extent[0] > 0.0) || !(extent[1] > 0.0) ||
+      !(extent[2] > 0.0))
+  {
+    return false;
+  }
+  // blocks of about BlockNodes nodes each (owned region), as cubic as the box allows
+  const double volume = extent[0] * extent[1] * extent[2];
+  const double spacing = std::cbrt(volume / static_cast<double>(n)); // mean node spacing
+  const double side = std::cbrt(static_cast<double>(BlockNodes) * volume / static_cast<double>(n));
+  int          blocks[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    blocks[k] = std::max(1, static_cast<int>(std::lround(extent[k] / side)));
+  }
+  while (blocks[0] * blocks[1] * blocks[2] > static_cast<int>(MaximumBlocks))
+  {
+    int * largest = std::max_element(blocks, blocks + 3);
+    *largest -= 1;
+  }
+  const int numberOfBlocks = blocks[0] * blocks[1] * blocks[2];
+  if (numberOfBlocks < 2)
+  {
+    return false;
+  }
+  stats.numberOfBlocks = static_cast<unsigned int>(numberOfBlocks);
+  const double diagonal = std::sqrt(extent[0] * extent[0] + extent[1] * extent[1] + extent[2] * extent[2]);
+  auto         boundary = [&](unsigned int k, int j) {
+    return j <= 0 ? lo[k] : (j >= blocks[k] ? hi[k] : lo[k] + extent[k] * static_cast<double>(j) / blocks[k]);
+  };
+  auto ownerOf = [&](const double * c) {
+    int owner = 0, stride = 1;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      const double t = std::min(std::max(c[k], lo[k]), hi[k]);
+      int          j = static_cast<int>(std::floor((t - lo[k]) / extent[k] * blocks[k]));
+      j = std::min(std::max(j, 0), blocks[k] - 1);
+      owner += j * stride;
+      stride *= blocks[k];
+    }
+    return owner;
+  };
+  // a face whose three nodes lie on one plane of the box is on the hull
+  auto onBox = [&](int32_t a, int32_t b, int32_t c) {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      for (const double plane : { lo[k], hi[k] })
+      {
+        if (xyz[3 * a + k] == plane && xyz[3 * b + k] == plane && xyz[3 * c + k] == plane)
+        {
+          return true;
+        }
+      }
+    }
+    return false;
+  };
+
+  std::vector<BlockResult> results(static_cast<size_t>(numberOfBlocks));
+  std::vector<double>      margins(results.size(), marginFactor * spacing);
+  auto                     runBlock = [&](size_t s, double margin) {
+    BlockResult & result = results[s];
+    result = BlockResult{};
+    result.ownerNeeds.assign(results.size(), 0.0);
+    const int j[3] = { static_cast<int>(s) % blocks[0],
+                       (static_cast<int>(s) / blocks[0]) % blocks[1],
+                       static_cast<int>(s) / (blocks[0] * blocks[1]) };
+    // the block's region extended by the margin (closed), clipped to the box
+    double elo[3], ehi[3];
+    bool   clippedLo[3], clippedHi[3];
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      elo[k] = boundary(k, j[k]) - margin;
+      ehi[k] = boundary(k, j[k] + 1) + margin;
+      clippedLo[k] = elo[k] <= lo[k];
+      clippedHi[k] = ehi[k] >= hi[k];
+    }
+    std::vector<std::pair<BlockKernel::Point_3, int32_t>> points;
+    for (int32_t i : unique)
+    {
+      const double * x = &xyz[3 * i];
+      if (x[0] >= elo[0] && x[0] <= ehi[0] && x[1] >= elo[1] && x[1] <= ehi[1] && x[2] >= elo[2] && x[2] <= ehi[2])
+      {
+        points.emplace_back(BlockKernel::Point_3(x[0], x[1], x[2]), i);
+      }
+    }
+    BlockTriangulation dt(points.begin(), points.end());
+    if (dt.dimension() < 3)
+    {
+      return; // incomplete
+    }
+    // accepted: owned, and no node outside the extended region can lie in its circumsphere
+    result.complete = true;
+    for (auto c = dt.finite_cells_begin(); c != dt.finite_cells_end(); ++c)
+    {
+      c->info() = 0;
+      // from the ascending vertices: every block that has this tetrahedron computes the same centre and owner
+      std::array<int32_t, 4> t;
+      for (int v = 0; v < 4; ++v)
+      {
+        t[v] = c->vertex(v)->info();
+      }
+      std::sort(t.begin(), t.end());
+      const double * p[4] = { &xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]] };
+      double         centre[3], radius = 0.0;
+      if (!Circumsphere(p[0], p[1], p[2], p[3], centre, radius))
+      {
+        result.complete = false; // cannot tell who owns it
+        result.neededMargin = std::max(result.neededMargin, 2.0 * margin);
+        continue;
+      }
+      // the part of the sphere inside the box lies in the box `cap`: along axis k within c_k +- sqrt(r^2 - the other
+      // axes' squared distances from c to the box); its centre decides the owner, and the tetrahedron's nodes are in it
+      radius += 1e-9 * (diagonal + radius); // room for the round-off of centre and radius
+      double outside[3], cap[3][2], capCentre[3];
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        outside[k] = centre[k] < lo[k] ? lo[k] - centre[k] : (centre[k] > hi[k] ? centre[k] - hi[k] : 0.0);
+      }
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        double q = radius * radius;
+        for (unsigned int m = 0; m < 3; ++m)
+        {
+          q -= m == k ? 0.0 : outside[m] * outside[m];
+        }
+        const double half = q > 0.0 ? std::sqrt(q) : 0.0;
+        cap[k][0] = std::max(centre[k] - half, lo[k]);
+        cap[k][1] = std::min(centre[k] + half, hi[k]);
+        capCentre[k] = 0.5 * (cap[k][0] + cap[k][1]);
+      }
+      const int owner = ownerOf(capCentre);
+      // how far the cap reaches beyond block b's own region (only towards neighbouring blocks)
+      auto reach = [&](int b) {
+        const int jb[3] = { b % blocks[0], (b / blocks[0]) % blocks[1], b / (blocks[0] * blocks[1]) };
+        double    r = 0.0;
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          r = std::max(r, jb[k] > 0 ? boundary(k, jb[k]) - cap[k][0] : 0.0);
+          r = std::max(r, jb[k] + 1 < blocks[k] ? cap[k][1] - boundary(k, jb[k] + 1) : 0.0);
+        }
+        return r;
+      };
+      if (reach(static_cast<int>(s)) > margin)
+      {
+        if (owner == static_cast<int>(s))
+        {
+          result.complete = false; // a node outside the extended region might be in its sphere
+          result.neededMargin = std::max(result.neededMargin, reach(owner));
+        }
+        continue;
+      }
+      // a Delaunay tetrahedron of all the nodes
+      if (owner != static_cast<int>(s))
+      {
+        // its owner must see it too: the owner's extended region must hold the cap
+        const double needed = reach(owner);
+        if (needed > margins[owner])
+        {
+          result.ownerNeeds[owner] = std::max(result.ownerNeeds[owner], needed);
+        }
+        continue;
+      }
+      c->info() = 1;
+    }
+    if (!result.complete)
+    {
+      return;
+    }
+    for (auto c = dt.finite_cells_begin(); c != dt.finite_cells_end(); ++c)
+    {
+      if (c->info() != 1)
+      {
+        continue;
+      }
+      std::array<int32_t, 4> t;
+      for (int v = 0; v < 4; ++v)
+      {
+        t[v] = c->vertex(v)->info();
+      }
+      result.sixVolume += SixVolume(&xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]]);
+      result.tetrahedra.push_back(CanonicalTetrahedron(t));
+      for (int f = 0; f < 4; ++f)
+      {
+        const auto neighbour = c->neighbor(f);
+        if (!dt.is_infinite(neighbour) && neighbour->info() == 1)
+        {
+          continue; // shared with a tetrahedron of this block
+        }
+        std::array<int32_t, 3> face;
+        for (int v = 0, m = 0; v < 4; ++v)
+        {
+          if (v != f)
+          {
+            face[m++] = t[v];
+          }
+        }
+        if (dt.is_infinite(neighbour) && onBox(face[0], face[1], face[2]))
+        {
+          continue;
+        }
+        std::sort(face.begin(), face.end());
+        result.crossFaces.push_back(face);
+      }
+    }
+    std::sort(result.tetrahedra.begin(), result.tetrahedra.end());
+  };
+
+  std::vector<size_t> todo(results.size());
+  std::iota(todo.begin(), todo.end(), size_t{ 0 });
+  // Blocks that cannot vouch for a tetrahedron they own, or that another block found too small to see one they own,
+  // are redone with the margin that tetrahedron asks for (at least twice the last one), up to BlockRounds rounds.
+  for (unsigned int round = 0; round < BlockRounds && !todo.empty(); ++round)
+  {
+    ParallelForChunkIds(threader, todo.size(), [&](size_t a) { runBlock(todo[a], margins[todo[a]]); });
+    stats.numberOfRuns += todo.size();
+    std::vector<double> needed(results.size(), 0.0);
+    for (size_t s = 0; s < results.size(); ++s)
+    {
+      needed[s] = results[s].complete ? 0.0 : std::max(2.0 * margins[s], results[s].neededMargin);
+      for (size_t b = 0; b < results.size(); ++b)
+      {
+        needed[b] = std::max(needed[b], results[s].ownerNeeds[b]);
+      }
+    }
+    todo.clear();
+    for (size_t s = 0; s < results.size(); ++s)
+    {
+      if (needed[s] > margins[s])
+      {
+        margins[s] = std::max(1.01 * needed[s], margins[s]);
+        todo.push_back(s);
+      }
+    }
+  }
+  if (!todo.empty())
+  {
+    return false;
+  }
+  // every face between blocks is held by exactly two accepted tetrahedra, and together they fill the box
+  std::vector<std::array<int32_t, 3>> cross;
+  double                              sixVolume = 0.0;
+  size_t                              total = 0;
+  for (const auto & r : results)
+  {
+    if (!r.complete)
+    {
+      return false;
+    }
+    cross.insert(cross.end(), r.crossFaces.begin(), r.crossFaces.end());
+    sixVolume += r.sixVolume;
+    total += r.tetrahedra.size();
+  }
+  std::sort(cross.begin(), cross.end());
+  for (size_t i = 0; i < cross.size(); i += 2)
+  {
+    if (i + 1 >= cross.size() || cross[i] != cross[i + 1] || (i + 2 < cross.size() && cross[i + 2] == cross[i]))
+    {
+      return false;
+    }
+  }
+  if (!(std::abs(sixVolume - 6.0 * volume) <= 1e-9 * 6.0 * volume))
+  {
+    return false;
+  }
+  tetrahedra.clear();
+  tetrahedra.reserve(total);
+  for (const auto & r : results)
+  {
+    tetrahedra.insert(tetrahedra.end(), r.tetrahedra.begin(), r.tetrahedra.end());
+  }
+  return true;
+}
+} // namespace
+
+double
+TetrahedronShape(const double * a, const double * b, const double * c, const double * d)
+{
+  const double   det = SixVolume(a, b, c, d);
   const double * p[4] = { a, b, c, d };
   const double   longest = LongestEdge(p);
   // 6 sqrt(2) V / L^3 with V = det / 6
@@ -160,20 +584,27 @@ TetrahedronShape(const double * a, const double * b, const double * c, const dou
 }
 
 size_t
-Delaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra)
+Delaunay3D(const std::vector<double> &           xyz,
+           std::vector<std::array<int32_t, 4>> & tetrahedra,
+           MultiThreaderBase *                   threader)
+{
+  tetrahedra.clear();
+  const std::vector<int32_t> unique = UniqueNodes(xyz);
+  if (unique.size() >= 4 && SpansSpace(xyz, unique) &&
+      BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
+  {
+    return xyz.size() / 3 - unique.size();
+  }
+  return TetGenDelaunay3D(xyz, tetrahedra);
+}
+
+size_t
+TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra)
 {
   tetrahedra.clear();
   const size_t               n = xyz.size() / 3;
-  const std::vector<int32_t> first = FirstAtSamePosition(xyz);
-  std::vector<int32_t>       unique; // TetGen's point index -> our node index
-  for (size_t i = 0; i < n; ++i)
-  {
-    if (first[i] == static_cast<int32_t>(i))
-    {
-      unique.push_back(static_cast<int32_t>(i));
-    }
-  }
-  const size_t merged = n - unique.size();
+  const std::vector<int32_t> unique = UniqueNodes(xyz); // TetGen's point index -> our node index
+  const size_t               merged = n - unique.size();
   if (unique.size() < 4 || !SpansSpace(xyz, unique))
   {
     return merged;
@@ -219,13 +650,31 @@ Delaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> 
   return merged;
 }
 
+bool
+BlockDelaunay3D(const std::vector<double> &           xyz,
+                std::vector<std::array<int32_t, 4>> & tetrahedra,
+                MultiThreaderBase *                   threader,
+                double                                marginFactor,
+                BlockDelaunayStatistics *             statistics)
+{
+  tetrahedra.clear();
+  if (statistics)
+  {
+    *statistics = BlockDelaunayStatistics{};
+  }
+  const std::vector<int32_t> unique = UniqueNodes(xyz);
+  return unique.size() >= 4 && SpansSpace(xyz, unique) &&
+         BlockDelaunay(xyz, unique, threader, marginFactor, tetrahedra, statistics);
+}
+
 size_t
 NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
                         const std::vector<uint8_t> &          freeAxes,
                         double                                maximumStep,
                         std::vector<std::array<int32_t, 4>> & tetrahedra,
                         double                                minimumShape,
-                        unsigned int                          maximumRounds)
+                        unsigned int                          maximumRounds,
+                        MultiThreaderBase *                   threader)
 {
   const size_t n = xyz.size() / 3;
   if (freeAxes.size() != n)
@@ -237,7 +686,7 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
   const std::vector<double>  original = xyz;
   for (unsigned int round = 0;; ++round)
   {
-    Delaunay3D(xyz, tetrahedra);
+    Delaunay3D(xyz, tetrahedra, threader);
     // the step each node of a flat tetrahedron takes this round (the smallest its flat tetrahedra ask for)
     std::vector<double> step(n, 0.0);
     size_t              flat = 0;

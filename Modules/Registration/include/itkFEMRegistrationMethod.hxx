@@ -824,8 +824,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       dmr::ThrowOnError(cvt.GetCells(masses, centroids), "CVT sites");
       dmr::ThrowOnError(summarizer.Summarize(D, grid.size.data(), cvt.DeviceLabels(), m_NumberOfNodes, summary),
                         "label summary");
-      m_DynamicSimplexMesh =
-        dmr::BuildDualMesh<D>(grid, summary, centroids.data(), m_DualMeshFilter->GetSnapToBoxEdges(), nullptr);
+      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
+        grid, summary, centroids.data(), m_DualMeshFilter->GetSnapToBoxEdges(), nullptr, threader);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
