@@ -525,10 +525,10 @@ BuildDualMesh(const Grid<D> &      grid,
     }
     stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(
       nodes, freeAxes, 0.25 * minimumSpacing, elements, DefaultMinimumTetrahedronShape, 12, threader);
-    // how much of the CVT adjacency between inner cells the tetrahedralization holds
-    for (const uint64_t key : summary.adjacentPairs)
+    // how much of the CVT adjacency between inner cells the tetrahedralization holds (when asked for)
+    for (size_t k = 0; statistics && k < summary.adjacentPairs.size(); ++k)
     {
-      const auto pair = LabelSummary::PairOfKey(key);
+      const auto pair = LabelSummary::PairOfKey(summary.adjacentPairs[k]);
       if (inner[pair[0]] && inner[pair[1]])
       {
         innerPairs.push_back(pair);
@@ -536,7 +536,7 @@ BuildDualMesh(const Grid<D> &      grid,
     }
   }
   stats.numberOfInnerAdjacencyEdges = innerPairs.size();
-  stats.numberOfMissingAdjacencyEdges = CountEdgesNotInMesh(innerPairs, elements);
+  stats.numberOfMissingAdjacencyEdges = statistics ? CountEdgesNotInMesh(innerPairs, elements) : 0;
   SimplexMesh<D> mesh = CompactDualMesh<D>(grid, nodes, elements);
   stats.numberOfBoundaryNodes =
     static_cast<size_t>(std::count(mesh.fixed.begin(), mesh.fixed.end(), static_cast<uint8_t>(1)));
