@@ -487,28 +487,27 @@ TEST(Delaunay3D, BlocksGiveTheDelaunayTetrahedralizationWhateverTheWorkUnits)
     Tetrahedra reference;
     ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, reference, Threader(1)));
     ExpectDelaunayOfBox(xyz, reference, 300.0, 260.0, 180.0);
-    for (const unsigned int workUnits : { 2u, 7u })
+    // other threads, other layouts, the same list
+    std::vector<unsigned int> layouts;
+    for (const unsigned int workUnits : { 2u, 7u, 16u })
     {
-      Tetrahedra t;
-      ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, t, Threader(workUnits)));
+      Tetrahedra                        t;
+      itk::dmr::BlockDelaunayStatistics statistics;
+      ASSERT_TRUE(itk::dmr::BlockDelaunay3D(xyz, t, Threader(workUnits), itk::dmr::DefaultBlockMargin, &statistics));
       EXPECT_EQ(t, reference) << workUnits << " work units";
+      layouts.push_back(statistics.numberOfBlocks);
     }
+    EXPECT_NE(layouts.front(), layouts.back()) << "the layouts did not differ";
     // Delaunay3D takes this path
     Tetrahedra t;
     EXPECT_EQ(itk::dmr::Delaunay3D(xyz, t, Threader(2)), 0u);
     EXPECT_EQ(t, reference);
-    // and TetGen finds the same tetrahedra (no cospherical nodes here)
+    // and one TetGen run gives the same list (no cospherical nodes here), as does Delaunay3D without threads
     Tetrahedra tetgen;
     EXPECT_EQ(itk::dmr::TetGenDelaunay3D(xyz, tetgen), 0u);
-    auto canonical = [](Tetrahedra ts) {
-      for (auto & x : ts)
-      {
-        std::sort(x.begin(), x.end());
-      }
-      std::sort(ts.begin(), ts.end());
-      return ts;
-    };
-    EXPECT_EQ(canonical(tetgen), canonical(reference));
+    EXPECT_EQ(tetgen, reference);
+    EXPECT_EQ(itk::dmr::Delaunay3D(xyz, t), 0u);
+    EXPECT_EQ(t, reference);
   }
 }
 

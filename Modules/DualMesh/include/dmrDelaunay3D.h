@@ -37,10 +37,11 @@ constexpr double DefaultBlockMargin = 2.0;
  * hull of the nodes. Nodes at the same position are merged: tetrahedra refer to the first node at a position. Every
  * tetrahedron is positively oriented (det [x1 - x0, x2 - x0, x3 - x0] > 0 in exact arithmetic); no tetrahedron has
  * exactly zero volume, but near-coplanar nodes can give near-flat ones (see NonDegenerateDelaunay3D).
- * Node sets whose convex hull is their bounding box (its 8 corners are nodes, as in the dual mesh) and that are large
- * enough for two or more blocks go through BlockDelaunay3D, on the threader's work units; the others, and those whose
- * blocks cannot vouch for their result, through TetGen 1.5 (whose point-order randomisation uses a fixed seed).
- * Either way the result depends only on the input, not on the number of work units.
+ * With a threader of two or more threads, node sets whose convex hull is their bounding box (its 8 corners are nodes,
+ * as in the dual mesh) go through BlockDelaunay3D; the others, and those whose blocks cannot vouch for their result,
+ * through one TetGen 1.5 run (TetGenDelaunay3D). Both write each tetrahedron with its vertices ascending (the last two
+ * swapped where that keeps it positive) and sort the list, so for nodes without cospherical subsets (whose Delaunay
+ * tetrahedralization is unique) the output is the same whichever path and however many threads.
  * Fewer than 4 distinct nodes, or all of them within 1e-12 of their extent from one plane, give no tetrahedra
  * (TetGen 1.5 crashes on a coplanar set). Throws an itk::ExceptionObject when TetGen fails. Returns the number of
  * nodes merged into an earlier one. (TetGen stays out of every public header: this file is its only interface.)
@@ -59,19 +60,20 @@ Delaunay3D(const std::vector<double> &           xyz,
 DynamicMeshRegistration_EXPORT size_t
 TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra);
 
-/** The Delaunay tetrahedralization of nodes whose convex hull is their bounding box, by blocks: the box is cut into
- * blocks of about 375 nodes (at most 64 blocks; false, with no tetrahedra, when it would be one block or the hull is
- * not the box). Each block, in parallel on the threader's work units, triangulates (CGAL, exact predicates, symbolic
- * perturbation: one triangulation per node set even when nodes are cospherical) the nodes of its region extended by
- * marginFactor mean node spacings, (volume / nodes)^(1/3), and keeps the tetrahedra it owns (circumcentre in its
- * region) whose circumsphere, within the box, lies inside the extended region: no node outside it can be in that
+/** The Delaunay tetrahedralization of nodes whose convex hull is their bounding box, by blocks (false, with no
+ * tetrahedra, when the hull is not the box or no layout of two or more blocks fits). The box is cut into the grid of
+ * blocks (at most 64, at least 150 nodes each) with the shortest critical path on the threader's work units (its
+ * threads at most; at least 2): waves of blocks times the largest extended block's share of the box. Each block, in
+ * parallel, triangulates (CGAL, exact predicates, symbolic perturbation: one triangulation per node set even when nodes
+ * are cospherical) the nodes of its region extended by marginFactor mean node spacings, (volume / nodes)^(1/3), and
+ * keeps the tetrahedra it owns (the centre of the box around the circumsphere's part inside the node box lies in its
+ * region) whose circumsphere, within the node box, lies inside the extended region: no node outside it can be in that
  * sphere, so each kept tetrahedron is a Delaunay tetrahedron of all the nodes. A block that owns a tetrahedron it
- * cannot vouch for is redone, up to twice, with the margin that tetrahedron's sphere asks for (at least double). The
- * result is accepted only when every face shared with another block's tetrahedron is held by exactly two kept
- * tetrahedra, box faces aside, and the kept volume equals the box's to 1e-9: then the kept tetrahedra are the whole
- * Delaunay tetrahedralization. Otherwise false (no tetrahedra). Each tetrahedron is written with its vertices
- * ascending, the last two swapped where that keeps it positive, the blocks in order, each block's sorted: the output
- * depends only on the nodes. */
+ * cannot vouch for, or that another block finds too small to see a tetrahedron it owns, is redone, up to twice, with
+ * the margin that tetrahedron asks for (at least double). The result is accepted only when every face shared with
+ * another block's tetrahedron is held by exactly two kept tetrahedra, box faces aside, and the kept volume equals the
+ * box's to 1e-9: then the kept tetrahedra are the whole Delaunay tetrahedralization. Otherwise false (no tetrahedra).
+ * Output as Delaunay3D's (canonical tetrahedra, sorted): it depends only on the nodes, not on the layout. */
 struct BlockDelaunayStatistics
 {
   unsigned int numberOfBlocks{ 0 }; // 0: not applicable

@@ -19,6 +19,7 @@
 
 #include "dmrGrid.h"
 #include "itkMacro.h"
+#include "itkMultiThreaderBase.h"
 #include <CGAL/Delaunay_triangulation_3.h>
 #include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
 #include <CGAL/Triangulation_cell_base_with_info_3.h>
@@ -26,6 +27,7 @@
 #include <tetgen.h>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
 
 namespace itk
@@ -34,8 +36,8 @@ namespace dmr
 {
 namespace
 {
-/** Nodes per block (owned region) of the block decomposition, and the most blocks. */
-constexpr size_t       BlockNodes = 375;
+/** Fewest nodes per block (owned region) of the block decomposition, and the most blocks. */
+constexpr size_t       MinimumBlockNodes = 150;
 constexpr unsigned int MaximumBlocks = 64;
 constexpr unsigned int BlockRounds = 3;
 
@@ -57,6 +59,15 @@ FirstAtSamePosition(const std::vector<double> & xyz)
     first[i] = same ? first[order[k - 1]] : i; // stable sort: the lowest index comes first in a run
   }
   return first;
+}
+
+/** How many blocks can run side by side: the threader's work units, at most its threads (an ITK 5.2 pool reports
+ * the pool's size, which only grows), 1 without a threader. */
+unsigned int
+Parallelism(const MultiThreaderBase * threader)
+{
+  return threader ? std::max(1u, std::min(threader->GetNumberOfWorkUnits(), threader->GetMaximumNumberOfThreads()))
+                  : 1u;
 }
 
 /** The nodes that are the first at their position, in node order. */
@@ -305,19 +316,42 @@ BlockDelaunay(const std::vector<double> &           xyz,
   {
     return false;
   }
-  // blocks of about BlockNodes nodes each (owned region), as cubic as the box allows
   const double volume = extent[0] * extent[1] * extent[2];
   const double spacing = std::cbrt(volume / static_cast<double>(n)); // mean node spacing
-  const double side = std::cbrt(static_cast<double>(BlockNodes) * volume / static_cast<double>(n));
-  int          blocks[3];
-  for (unsigned int k = 0; k < 3; ++k)
+  // The layout with the shortest critical path on the threader's threads (at least 2): waves of blocks times the
+  // largest extended block's share of the box (about its share of the nodes), ties to fewer blocks; at least
+  // MinimumBlockNodes nodes per block region, at most MaximumBlocks blocks.
+  const double threads = std::max(2.0, static_cast<double>(Parallelism(threader)));
+  const double firstMargin = marginFactor * spacing;
+  int          blocks[3] = { 1, 1, 1 };
+  double       best = std::numeric_limits<double>::infinity();
+  for (int b0 = 1; b0 <= static_cast<int>(MaximumBlocks); ++b0)
   {
-    blocks[k] = std::max(1, static_cast<int>(std::lround(extent[k] / side)));
-  }
-  while (blocks[0] * blocks[1] * blocks[2] > static_cast<int>(MaximumBlocks))
-  {
-    int * largest = std::max_element(blocks, blocks + 3);
-    *largest -= 1;
+    for (int b1 = 1; b0 * b1 <= static_cast<int>(MaximumBlocks); ++b1)
+    {
+      for (int b2 = 1; b0 * b1 * b2 <= static_cast<int>(MaximumBlocks); ++b2)
+      {
+        const int b[3] = { b0, b1, b2 }, total = b0 * b1 * b2;
+        if (total < 2 || static_cast<double>(n) / total < static_cast<double>(MinimumBlockNodes))
+        {
+          continue;
+        }
+        double share = 1.0;
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          const double step = extent[k] / b[k];
+          // the longest extended block along k (an inner one, or an end one when there are 1 or 2)
+          const double inner = b[k] > 2 ? step + 2.0 * firstMargin : step + firstMargin;
+          share *= b[k] == 1 ? 1.0 : std::min(extent[k], inner) / extent[k];
+        }
+        const double cost = std::ceil(total / threads) * share;
+        if (cost < best)
+        {
+          best = cost;
+          std::copy(b, b + 3, blocks);
+        }
+      }
+    }
   }
   const int numberOfBlocks = blocks[0] * blocks[1] * blocks[2];
   if (numberOfBlocks < 2)
@@ -564,10 +598,13 @@ BlockDelaunay(const std::vector<double> &           xyz,
     return false;
   }
   tetrahedra.clear();
+  // the blocks' sorted lists merged: the order of the canonical tetrahedra, whatever the layout
   tetrahedra.reserve(total);
   for (const auto & r : results)
   {
+    const auto middle = static_cast<std::ptrdiff_t>(tetrahedra.size());
     tetrahedra.insert(tetrahedra.end(), r.tetrahedra.begin(), r.tetrahedra.end());
+    std::inplace_merge(tetrahedra.begin(), tetrahedra.begin() + middle, tetrahedra.end());
   }
   return true;
 }
@@ -590,7 +627,8 @@ Delaunay3D(const std::vector<double> &           xyz,
 {
   tetrahedra.clear();
   const std::vector<int32_t> unique = UniqueNodes(xyz);
-  if (unique.size() >= 4 && SpansSpace(xyz, unique) &&
+  // blocks only where they can run side by side
+  if (Parallelism(threader) > 1 && unique.size() >= 4 && SpansSpace(xyz, unique) &&
       BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
   {
     return xyz.size() / 3 - unique.size();
@@ -646,7 +684,9 @@ TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t
       }
       tetrahedra[t][v] = unique[k];
     }
+    tetrahedra[t] = CanonicalTetrahedron(tetrahedra[t]);
   }
+  std::sort(tetrahedra.begin(), tetrahedra.end()); // the order of BlockDelaunay3D
   return merged;
 }
 
