@@ -46,6 +46,57 @@ Volume(const std::vector<double> & xyz, const std::array<int32_t, 4> & t)
          6.0;
 }
 
+/** The first node strictly inside the circumsphere of tetrahedron t (to 1e-9 of its squared radius), or -1. */
+int64_t
+NodeInsideCircumsphere(const std::vector<double> & xyz, const std::array<int32_t, 4> & t)
+{
+  // circumcentre c solves 2 (p_i - p_0) . c = |p_i|^2 - |p_0|^2 (Cramer's rule)
+  double m[3][3], rhs[3], centre[3];
+  for (unsigned int r = 0; r < 3; ++r)
+  {
+    rhs[r] = 0.0;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      m[r][k] = 2.0 * (xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k]);
+      rhs[r] += xyz[3 * t[r + 1] + k] * xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k] * xyz[3 * t[0] + k];
+    }
+  }
+  auto det3 = [](const double(&q)[3][3]) {
+    return q[0][0] * (q[1][1] * q[2][2] - q[1][2] * q[2][1]) - q[0][1] * (q[1][0] * q[2][2] - q[1][2] * q[2][0]) +
+           q[0][2] * (q[1][0] * q[2][1] - q[1][1] * q[2][0]);
+  };
+  const double det = det3(m);
+  for (unsigned int col = 0; col < 3; ++col)
+  {
+    double mc[3][3];
+    for (unsigned int r = 0; r < 3; ++r)
+    {
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        mc[r][k] = k == col ? rhs[r] : m[r][k];
+      }
+    }
+    centre[col] = det3(mc) / det;
+  }
+  auto distance2 = [&](size_t i) {
+    double s = 0.0;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      s += (xyz[3 * i + k] - centre[k]) * (xyz[3 * i + k] - centre[k]);
+    }
+    return s;
+  };
+  const double radius2 = distance2(static_cast<size_t>(t[0]));
+  for (size_t i = 0; i < xyz.size() / 3; ++i)
+  {
+    if (distance2(i) < radius2 * (1.0 - 1e-9))
+    {
+      return static_cast<int64_t>(i);
+    }
+  }
+  return -1;
+}
+
 /** Box [0,a] x [0,b] x [0,c] corners followed by random inner points. */
 std::vector<double>
 BoxWithInnerPoints(double a, double b, double c, size_t inner, uint32_t seed)
@@ -129,49 +180,7 @@ TEST(Delaunay3D, IsEmptyCircumsphere)
   itk::dmr::Delaunay3D(xyz, tetrahedra);
   for (const auto & t : tetrahedra)
   {
-    // circumcentre c solves 2 (p_i - p_0) . c = |p_i|^2 - |p_0|^2
-    double m[3][3], rhs[3];
-    for (unsigned int r = 0; r < 3; ++r)
-    {
-      rhs[r] = 0.0;
-      for (unsigned int k = 0; k < 3; ++k)
-      {
-        m[r][k] = 2.0 * (xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k]);
-        rhs[r] += xyz[3 * t[r + 1] + k] * xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k] * xyz[3 * t[0] + k];
-      }
-    }
-    const double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
-                       m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-                       m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-    double centre[3];
-    for (unsigned int c = 0; c < 3; ++c)
-    {
-      double mc[3][3];
-      for (unsigned int r = 0; r < 3; ++r)
-      {
-        for (unsigned int k = 0; k < 3; ++k)
-        {
-          mc[r][k] = k == c ? rhs[r] : m[r][k];
-        }
-      }
-      centre[c] = (mc[0][0] * (mc[1][1] * mc[2][2] - mc[1][2] * mc[2][1]) -
-                   mc[0][1] * (mc[1][0] * mc[2][2] - mc[1][2] * mc[2][0]) +
-                   mc[0][2] * (mc[1][0] * mc[2][1] - mc[1][1] * mc[2][0])) /
-                  det;
-    }
-    auto distance2 = [&](size_t i) {
-      double s = 0.0;
-      for (unsigned int k = 0; k < 3; ++k)
-      {
-        s += (xyz[3 * i + k] - centre[k]) * (xyz[3 * i + k] - centre[k]);
-      }
-      return s;
-    };
-    const double radius2 = distance2(static_cast<size_t>(t[0]));
-    for (size_t i = 0; i < xyz.size() / 3; ++i)
-    {
-      EXPECT_GE(distance2(i), radius2 * (1.0 - 1e-9)) << "node " << i << " inside a circumsphere";
-    }
+    EXPECT_EQ(NodeInsideCircumsphere(xyz, t), -1) << "a node inside a circumsphere";
   }
 }
 
@@ -418,53 +427,14 @@ ExpectDelaunayOfBox(const std::vector<double> & xyz, const Tetrahedra & tetrahed
     i = j;
   }
   EXPECT_GT(shared, single);
-  // empty circumspheres (a grid of buckets keeps this near-linear)
-  const size_t n = xyz.size() / 3;
+  // empty circumspheres (every node against every sphere)
   for (const auto & t : tetrahedra)
   {
-    double m[3][3], rhs[3], centre[3];
-    for (unsigned int r = 0; r < 3; ++r)
+    const int64_t inside = NodeInsideCircumsphere(xyz, t);
+    if (inside >= 0)
     {
-      rhs[r] = 0.0;
-      for (unsigned int k = 0; k < 3; ++k)
-      {
-        m[r][k] = 2.0 * (xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k]);
-        rhs[r] += xyz[3 * t[r + 1] + k] * xyz[3 * t[r + 1] + k] - xyz[3 * t[0] + k] * xyz[3 * t[0] + k];
-      }
-    }
-    auto det3 = [](const double(&q)[3][3]) {
-      return q[0][0] * (q[1][1] * q[2][2] - q[1][2] * q[2][1]) - q[0][1] * (q[1][0] * q[2][2] - q[1][2] * q[2][0]) +
-             q[0][2] * (q[1][0] * q[2][1] - q[1][1] * q[2][0]);
-    };
-    const double det = det3(m);
-    for (unsigned int col = 0; col < 3; ++col)
-    {
-      double mc[3][3];
-      for (unsigned int r = 0; r < 3; ++r)
-      {
-        for (unsigned int k = 0; k < 3; ++k)
-        {
-          mc[r][k] = k == col ? rhs[r] : m[r][k];
-        }
-      }
-      centre[col] = det3(mc) / det;
-    }
-    auto distance2 = [&](size_t i) {
-      double s = 0.0;
-      for (unsigned int k = 0; k < 3; ++k)
-      {
-        s += (xyz[3 * i + k] - centre[k]) * (xyz[3 * i + k] - centre[k]);
-      }
-      return s;
-    };
-    const double radius2 = distance2(static_cast<size_t>(t[0]));
-    for (size_t i = 0; i < n; ++i)
-    {
-      if (distance2(i) < radius2 * (1.0 - 1e-9))
-      {
-        ADD_FAILURE() << "node " << i << " inside the circumsphere of a tetrahedron";
-        return;
-      }
+      ADD_FAILURE() << "node " << inside << " inside the circumsphere of a tetrahedron";
+      return;
     }
   }
 }
