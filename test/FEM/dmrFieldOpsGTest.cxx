@@ -269,3 +269,22 @@ TEST(FieldMaxima, ParallelEqualsSequential)
             itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()));
   EXPECT_GT(itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()), 50.0 / 1.3);
 }
+
+// the index advanced pixel by pixel is grid.Index(p), from any start, across rows and slices
+TEST(ForEachPixel, GivesEveryPixelOfTheRangeWithItsIndex)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 7, 5, 4 }, std::array<double, 3>{ 1.0, 1.0, 1.0 });
+  for (const std::array<size_t, 2> range : { std::array<size_t, 2>{ 0, 140 },
+                                             std::array<size_t, 2>{ 3, 41 },
+                                             std::array<size_t, 2>{ 34, 36 },
+                                             std::array<size_t, 2>{ 139, 140 },
+                                             std::array<size_t, 2>{ 20, 20 } })
+  {
+    size_t next = range[0];
+    itk::dmr::ForEachPixel(grid, range[0], range[1], [&](size_t p, const std::array<int64_t, 3> & idx) {
+      EXPECT_EQ(p, next++);
+      EXPECT_EQ(idx, grid.Index(p)) << "pixel " << p;
+    });
+    EXPECT_EQ(next, range[1]);
+  }
+}

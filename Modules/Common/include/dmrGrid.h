@@ -107,6 +107,27 @@ struct Grid
   }
 };
 
+/** body(p, idx) for the pixels p in [begin, end) in order, idx = grid.Index(p) advanced pixel by pixel (no division
+ * per pixel). */
+template <unsigned int VDimension, typename TBody>
+inline void
+ForEachPixel(const Grid<VDimension> & grid, size_t begin, size_t end, TBody && body)
+{
+  if (begin >= end)
+  {
+    return;
+  }
+  std::array<int64_t, VDimension> idx = grid.Index(begin);
+  for (size_t p = begin; p < end; ++p)
+  {
+    body(p, static_cast<const std::array<int64_t, VDimension> &>(idx));
+    for (unsigned int k = 0; k < VDimension && ++idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
+    {
+      idx[k] = 0;
+    }
+  }
+}
+
 /** The corners of the multilinear interpolation at a continuous index, clamped to the border (zero-flux extension):
  * body(offset, weight) for every corner whose weight w x prod(frac or 1 - frac) is not zero, in a fixed corner order
  * (offset: the corner's pixel in the grid). */

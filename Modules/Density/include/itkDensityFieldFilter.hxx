@@ -205,7 +205,7 @@ WarpJacobianTranspose(const Grid<D> &                grid,
     {
       continue; // a single pixel along this axis
     }
-    const double h = static_cast<double>((hi - lo) / grid.stride[j]) * grid.spacing[j];
+    const double h = (hi - lo == 2 * grid.stride[j] ? 2.0 : 1.0) * grid.spacing[j]; // central or one-sided
     for (unsigned int k = 0; k < D; ++k)
     {
       double du = 0.0;
@@ -485,8 +485,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
       {
         Partial      acc;
         const size_t pEnd = std::min(n, (c + 1) * chunk);
-        for (size_t p = c * chunk; p < pEnd; ++p)
-        {
+        dmr::ForEachPixel(grid, c * chunk, pEnd, [&](size_t p, const std::array<int64_t, D> & idx) {
           if (maskBuffer && maskBuffer[p] == 0)
           {
             for (unsigned int k = 0; k < D; ++k)
@@ -498,11 +497,10 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
               }
             }
             densityBuffer[p] = 0;
-            continue;
+            return;
           }
           ++acc.inside;
-          const auto idx = grid.Index(p);
-          double     u[D] = {};
+          double u[D] = {};
           if (fieldBuffer)
           {
             for (unsigned int k = 0; k < D; ++k)
@@ -565,7 +563,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
           }
           densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(f2);
           acc.f2 += f2;
-        }
+        });
         partial[c] = acc;
       }
     },

@@ -37,10 +37,8 @@ void
 ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * out, MultiThreaderBase * threader)
 {
   ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
-    for (size_t p = b; p < e; ++p)
-    {
-      const auto idx = grid.Index(p);
-      double     c[D], s[D] = {};
+    ForEachPixel(grid, b, e, [&](size_t p, const std::array<int64_t, D> & idx) {
+      double c[D], s[D] = {};
       for (unsigned int k = 0; k < D; ++k)
       {
         c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
@@ -50,7 +48,7 @@ ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * ou
       {
         out[p * D + k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
       }
-    }
+    });
   });
 }
 
@@ -164,16 +162,14 @@ JacobianDeterminant(const Grid<D> & grid, const float * u, float * jac, MultiThr
   ParallelForChunkIds(threader, nChunks, [&](size_t c) {
     const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
     auto &       mm = partial[c];
-    for (size_t p = c * chunk; p < end; ++p)
-    {
-      const auto idx = grid.Index(p);
-      double     J[D][D];
+    ForEachPixel(grid, c * chunk, end, [&](size_t p, const std::array<int64_t, D> & idx) {
+      double J[D][D];
       for (unsigned int k = 0; k < D; ++k) // derivative along axis k
       {
         const int64_t nk = static_cast<int64_t>(grid.size[k]);
         const size_t  lo = idx[k] > 0 ? p - grid.stride[k] : p;
         const size_t  hi = idx[k] + 1 < nk ? p + grid.stride[k] : p;
-        const double  h = static_cast<double>((hi - lo) / grid.stride[k]) * grid.spacing[k];
+        const double  h = (hi == lo ? 0.0 : (hi - lo == 2 * grid.stride[k] ? 2.0 : 1.0)) * grid.spacing[k];
         for (unsigned int r = 0; r < D; ++r)
         {
           J[r][k] = (r == k ? 1.0 : 0.0) + (h > 0 ? (static_cast<double>(u[hi * D + r]) - u[lo * D + r]) / h : 0.0);
@@ -195,7 +191,7 @@ JacobianDeterminant(const Grid<D> & grid, const float * u, float * jac, MultiThr
       }
       mm.first = std::min(mm.first, det);
       mm.second = std::max(mm.second, det);
-    }
+    });
   });
   std::pair<double, double> r = partial[0];
   for (const auto & mm : partial)
