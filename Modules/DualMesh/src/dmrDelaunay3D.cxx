@@ -259,7 +259,8 @@ struct BlockResult
   double                              sixVolume{ 0.0 };
   bool                                complete{ false };
   double                              neededMargin{ 0.0 }; // when incomplete: the margin its spheres asked for
-  std::vector<double>                 ownerNeeds; // per block: the margin it needs to see a tetrahedron it owns
+  std::vector<double>                 ownerNeeds;      // per block: the margin it needs to see a tetrahedron it owns
+  bool                                failed{ false }; // threw
 };
 
 /** The block decomposition of Delaunay3D (see BlockDelaunay3D in the header): false when it does not apply or cannot
@@ -546,12 +547,28 @@ BlockDelaunay(const std::vector<double> &           xyz,
   // are redone with the margin that tetrahedron asks for (at least twice the last one), up to BlockRounds rounds.
   for (unsigned int round = 0; round < BlockRounds && !todo.empty(); ++round)
   {
-    ParallelForChunkIds(threader, todo.size(), [&](size_t a) { runBlock(todo[a], margins[todo[a]]); });
+    ParallelForChunkIds(threader, todo.size(), [&](size_t a) {
+      try
+      {
+        runBlock(todo[a], margins[todo[a]]);
+      }
+      catch (...) // e.g. out of memory: TetGen's fallback reports what it meets
+      {
+        results[todo[a]].failed = true;
+      }
+    });
     stats.numberOfRuns += todo.size();
+    if (std::any_of(results.begin(), results.end(), [](const BlockResult & r) { return r.failed; }))
+    {
+      return false;
+    }
     std::vector<double> needed(results.size(), 0.0);
     for (size_t s = 0; s < results.size(); ++s)
     {
-      needed[s] = results[s].complete ? 0.0 : std::max(2.0 * margins[s], results[s].neededMargin);
+      if (!results[s].complete)
+      {
+        needed[s] = std::max({ needed[s], 2.0 * margins[s], results[s].neededMargin });
+      }
       for (size_t b = 0; b < results.size(); ++b)
       {
         needed[b] = std::max(needed[b], results[s].ownerNeeds[b]);
