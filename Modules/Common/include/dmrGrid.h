@@ -107,6 +107,26 @@ struct Grid
   }
 };
 
+/** The two pixels of the finite difference along axis k at pixel p (index idx): its neighbours, one-sided at the
+ * border (p itself for a single-pixel axis), and their distance in mm (2 or 1 spacings; 0 when lo == hi). */
+struct DifferenceStencil
+{
+  size_t lo;
+  size_t hi;
+  double h;
+};
+template <unsigned int VDimension>
+inline DifferenceStencil
+DifferenceAlong(const Grid<VDimension> &                                     grid,
+                const std::array<int64_t, static_cast<size_t>(VDimension)> & idx, // VDimension deduced from grid
+                size_t                                                       p,
+                unsigned int                                                 k)
+{
+  const size_t lo = idx[k] > 0 ? p - grid.stride[k] : p;
+  const size_t hi = idx[k] + 1 < static_cast<int64_t>(grid.size[k]) ? p + grid.stride[k] : p;
+  return { lo, hi, (hi == lo ? 0.0 : (hi - lo == 2 * grid.stride[k] ? 2.0 : 1.0)) * grid.spacing[k] };
+}
+
 /** body(p, idx) for the pixels p in [begin, end) in order, idx = grid.Index(p) advanced pixel by pixel (no division
  * per pixel). */
 template <unsigned int VDimension, typename TBody>

@@ -155,11 +155,8 @@ GradientInto(MultiThreaderBase *        threader,
       double     g[D];
       for (unsigned int k = 0; k < D; ++k)
       {
-        const int64_t n = static_cast<int64_t>(grid.size[k]);
-        const size_t  lo = idx[k] > 0 ? p - grid.stride[k] : p;
-        const size_t  hi = idx[k] + 1 < n ? p + grid.stride[k] : p;
-        const double  h = (static_cast<double>(hi > lo ? (hi - lo) / grid.stride[k] : 1)) * grid.spacing[k];
-        g[k] = hi > lo ? (static_cast<double>(image[hi]) - static_cast<double>(image[lo])) / h : 0.0;
+        const auto d = DifferenceAlong(grid, idx, p, k);
+        g[k] = d.hi > d.lo ? (static_cast<double>(image[d.hi]) - static_cast<double>(image[d.lo])) / d.h : 0.0;
       }
       for (unsigned int r = 0; r < D; ++r)
       {
@@ -199,21 +196,19 @@ WarpJacobianTranspose(const Grid<D> &                grid,
   }
   for (unsigned int j = 0; j < D; ++j)
   {
-    const size_t lo = idx[j] > 0 ? p - grid.stride[j] : p;
-    const size_t hi = idx[j] + 1 < static_cast<int64_t>(grid.size[j]) ? p + grid.stride[j] : p;
-    if (hi == lo)
+    const auto d = DifferenceAlong(grid, idx, p, j);
+    if (d.hi == d.lo)
     {
       continue; // a single pixel along this axis
     }
-    const double h = (hi - lo == 2 * grid.stride[j] ? 2.0 : 1.0) * grid.spacing[j]; // central or one-sided
     for (unsigned int k = 0; k < D; ++k)
     {
       double du = 0.0;
       for (unsigned int m = 0; m < D; ++m)
       {
-        du += direction[m][k] * (static_cast<double>(u[hi][m]) - static_cast<double>(u[lo][m]));
+        du += direction[m][k] * (static_cast<double>(u[d.hi][m]) - static_cast<double>(u[d.lo][m]));
       }
-      Jt[j][k] += du / h;
+      Jt[j][k] += du / d.h;
     }
   }
 }

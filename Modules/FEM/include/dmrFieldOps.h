@@ -166,13 +166,11 @@ JacobianDeterminant(const Grid<D> & grid, const float * u, float * jac, MultiThr
       double J[D][D];
       for (unsigned int k = 0; k < D; ++k) // derivative along axis k
       {
-        const int64_t nk = static_cast<int64_t>(grid.size[k]);
-        const size_t  lo = idx[k] > 0 ? p - grid.stride[k] : p;
-        const size_t  hi = idx[k] + 1 < nk ? p + grid.stride[k] : p;
-        const double  h = (hi == lo ? 0.0 : (hi - lo == 2 * grid.stride[k] ? 2.0 : 1.0)) * grid.spacing[k];
+        const auto d = DifferenceAlong(grid, idx, p, k);
         for (unsigned int r = 0; r < D; ++r)
         {
-          J[r][k] = (r == k ? 1.0 : 0.0) + (h > 0 ? (static_cast<double>(u[hi * D + r]) - u[lo * D + r]) / h : 0.0);
+          J[r][k] =
+            (r == k ? 1.0 : 0.0) + (d.h > 0 ? (static_cast<double>(u[d.hi * D + r]) - u[d.lo * D + r]) / d.h : 0.0);
         }
       }
       double det;
