@@ -625,45 +625,13 @@ BlockDelaunay(const std::vector<double> &           xyz,
   }
   return true;
 }
-} // namespace
 
-double
-TetrahedronShape(const double * a, const double * b, const double * c, const double * d)
+/** One TetGen run on the distinct nodes `unique` (at least 4, spanning space): canonical tetrahedra, sorted. */
+void
+TetGenOnUnique(const std::vector<double> &           xyz,
+               const std::vector<int32_t> &          unique, // TetGen's point index -> our node index
+               std::vector<std::array<int32_t, 4>> & tetrahedra)
 {
-  const double   det = SixVolume(a, b, c, d);
-  const double * p[4] = { a, b, c, d };
-  const double   longest = LongestEdge(p);
-  // 6 sqrt(2) V / L^3 with V = det / 6
-  return longest > 0.0 ? std::sqrt(2.0) * det / (longest * longest * longest) : 0.0;
-}
-
-size_t
-Delaunay3D(const std::vector<double> &           xyz,
-           std::vector<std::array<int32_t, 4>> & tetrahedra,
-           MultiThreaderBase *                   threader)
-{
-  tetrahedra.clear();
-  const std::vector<int32_t> unique = UniqueNodes(xyz);
-  // blocks only where they can run side by side
-  if (Parallelism(threader) > 1 && unique.size() >= 4 && SpansSpace(xyz, unique) &&
-      BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
-  {
-    return xyz.size() / 3 - unique.size();
-  }
-  return TetGenDelaunay3D(xyz, tetrahedra);
-}
-
-size_t
-TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra)
-{
-  tetrahedra.clear();
-  const size_t               n = xyz.size() / 3;
-  const std::vector<int32_t> unique = UniqueNodes(xyz); // TetGen's point index -> our node index
-  const size_t               merged = n - unique.size();
-  if (unique.size() < 4 || !SpansSpace(xyz, unique))
-  {
-    return merged;
-  }
   tetgenio in, out;
   in.numberofpoints = static_cast<int>(unique.size());
   in.pointlist = new REAL[3 * unique.size()]; // owned and deleted by tetgenio
@@ -704,7 +672,49 @@ TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t
     tetrahedra[t] = CanonicalTetrahedron(tetrahedra[t]);
   }
   std::sort(tetrahedra.begin(), tetrahedra.end()); // the order of BlockDelaunay3D
+}
+} // namespace
+
+double
+TetrahedronShape(const double * a, const double * b, const double * c, const double * d)
+{
+  const double   det = SixVolume(a, b, c, d);
+  const double * p[4] = { a, b, c, d };
+  const double   longest = LongestEdge(p);
+  // 6 sqrt(2) V / L^3 with V = det / 6
+  return longest > 0.0 ? std::sqrt(2.0) * det / (longest * longest * longest) : 0.0;
+}
+
+size_t
+Delaunay3D(const std::vector<double> &           xyz,
+           std::vector<std::array<int32_t, 4>> & tetrahedra,
+           MultiThreaderBase *                   threader)
+{
+  tetrahedra.clear();
+  const std::vector<int32_t> unique = UniqueNodes(xyz);
+  const size_t               merged = xyz.size() / 3 - unique.size();
+  if (unique.size() < 4 || !SpansSpace(xyz, unique))
+  {
+    return merged;
+  }
+  // blocks only where they can run side by side
+  if (Parallelism(threader) <= 1 || !BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
+  {
+    TetGenOnUnique(xyz, unique, tetrahedra);
+  }
   return merged;
+}
+
+size_t
+TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra)
+{
+  tetrahedra.clear();
+  const std::vector<int32_t> unique = UniqueNodes(xyz);
+  if (unique.size() >= 4 && SpansSpace(xyz, unique))
+  {
+    TetGenOnUnique(xyz, unique, tetrahedra);
+  }
+  return xyz.size() / 3 - unique.size();
 }
 
 bool
