@@ -149,7 +149,8 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
                     const std::vector<float> & changed,
                     size_t                     numberOfCells,
                     unsigned int               blockSize,
-                    size_t                     sweeps)
+                    size_t                     sweeps,
+                    bool                       shortLabels)
 {
   itk::dmr::DiscreteCVT<D> cpu;
   cpu.SetDensity(grid, density.data(), nullptr);
@@ -157,6 +158,7 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
   ASSERT_EQ(cpu.GetNumberOfCells(), numberOfCells);
 
   CVTSwapOptimizer gpu;
+  gpu.SetShortLabels(shortLabels);
   ASSERT_TRUE(Ok(gpu.SetGrid(D, grid.size.data(), grid.spacing.data())));
   ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
   ASSERT_TRUE(Ok(gpu.SetLabels(cpu.GetLabels().data(), numberOfCells, false)));
@@ -217,7 +219,11 @@ TEST(CVTCuda, GpuLabelsEqualCpuLabels2D)
   const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 128, 96 }, std::array<double, 2>{ 1.0, 1.3 });
   const auto              density = BumpAndRing<2>(grid, { 40.0, 50.0 });
   const auto              changed = BumpAndRing<2>(grid, { 43.0, 52.0 });
-  ExpectGpuFollowsCpu<2>(grid, density, changed, 40, 1, 60);
+  for (const bool shortLabels : { true, false }) // the sweeps on the 16-bit copy of the labels, and on the labels
+  {
+    SCOPED_TRACE(shortLabels ? "16-bit labels" : "32-bit labels");
+    ExpectGpuFollowsCpu<2>(grid, density, changed, 40, 1, 60, shortLabels);
+  }
 }
 
 TEST(CVTCuda, GpuLabelsEqualCpuLabels3D)
@@ -226,7 +232,11 @@ TEST(CVTCuda, GpuLabelsEqualCpuLabels3D)
   const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 48, 40, 32 }, std::array<double, 3>{ 1.0, 1.2, 1.5 });
   const auto              density = BumpAndRing<3>(grid, { 18.0, 20.0, 24.0 });
   const auto              changed = BumpAndRing<3>(grid, { 20.0, 21.0, 23.0 });
-  ExpectGpuFollowsCpu<3>(grid, density, changed, 200, 2, 40);
+  for (const bool shortLabels : { true, false })
+  {
+    SCOPED_TRACE(shortLabels ? "16-bit labels" : "32-bit labels");
+    ExpectGpuFollowsCpu<3>(grid, density, changed, 200, 2, 40, shortLabels);
+  }
 }
 
 TEST(CVTCuda, HalvedBatchesGiveTheCpuLabels)
@@ -252,12 +262,14 @@ TEST(CVTCuda, HalvedBatchesGiveTheCpuLabels)
     cpu.ContractionInitialize(numberOfCells, 1);
     const std::vector<int32_t> initial = cpu.GetLabels();
     const auto                 c = cpu.Optimize(0.0, 1000);
-    // both ways of running the sweeps: the device-side loop and one launch plus host check per sweep
+    // both ways of running the sweeps (the device-side loop; one launch plus host check per sweep), the second with
+    // the 32-bit labels
     for (const bool deviceLoop : { true, false })
     {
       const std::string when = "trial " + std::to_string(trial) + (deviceLoop ? ", device loop" : ", host loop");
       CVTSwapOptimizer  gpu;
       gpu.SetDeviceLoop(deviceLoop);
+      gpu.SetShortLabels(deviceLoop);
       ASSERT_TRUE(Ok(gpu.SetGrid(2, grid.size.data(), grid.spacing.data())));
       ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
       ASSERT_TRUE(Ok(gpu.SetLabels(initial.data(), numberOfCells, false)));

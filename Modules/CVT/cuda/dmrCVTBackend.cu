@@ -217,9 +217,9 @@ SwapEnergyChange(double w, const double * x, double mi, const double * ri, doubl
 
 /** DiscreteCVT::RemovalKeepsCellConnected: the cell's pixels of the 3^D neighbourhood that touch p by a face stay
  * face-connected (inside the neighbourhood, without p). Bit-set flood fill. */
-template <unsigned int D>
+template <unsigned int D, typename TLabel>
 __device__ inline bool
-RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t p, const int32_t * idx, int32_t own)
+RemovalKeepsCellConnected(const GridParams & g, const TLabel * labels, int32_t p, const int32_t * idx, int32_t own)
 {
   using N = Neighbourhood<D>;
   uint32_t member = 0;
@@ -238,7 +238,7 @@ RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t 
       inside = inside && c >= 0 && c < g.size[k];
       offset += N::Offset(q, k) * g.stride[k];
     }
-    if (inside && labels[p + offset] == own)
+    if (inside && static_cast<int32_t>(labels[p + offset]) == own)
     {
       member |= 1u << q;
     }
@@ -263,11 +263,34 @@ RemovalKeepsCellConnected(const GridParams & g, const int32_t * labels, int32_t 
 
 struct ColourParams
 {
-  int32_t origin[3];
-  int32_t sub[3];
-  int32_t count;
-  int32_t colour;
+  int32_t  origin[3];
+  int32_t  sub[3];
+  int32_t  count;
+  int32_t  colour;
+  uint64_t reciprocal[3]; // ceil(2^32 / sub[k]): rest / sub[k] as a product (0: divide; see ColourIndex)
 };
+
+/** The index of pixel number q of colour cp and its offset p. Dividing by sub[k] is a multiplication by
+ * ceil(2^32 / sub[k]) and a shift, exact for every rest < 2^32 / sub[k] (the host sets the reciprocals only when
+ * count x sub[k] < 2^32); otherwise an integer division. */
+template <unsigned int D>
+__device__ inline int32_t
+ColourIndex(const GridParams & g, const ColourParams & cp, int32_t q, int32_t * idx)
+{
+  int32_t  p = 0;
+  uint32_t rest = static_cast<uint32_t>(q);
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    const uint32_t sub = static_cast<uint32_t>(cp.sub[k]);
+    const uint32_t next = cp.reciprocal[k] != 0
+                            ? static_cast<uint32_t>((static_cast<uint64_t>(rest) * cp.reciprocal[k]) >> 32)
+                            : rest / sub;
+    idx[k] = cp.origin[k] + 2 * static_cast<int32_t>(rest - next * sub);
+    rest = next;
+    p += idx[k] * g.stride[k];
+  }
+  return p;
+}
 
 /** The sweep's kernels are launched as programmatic dependent launches (LaunchAfter): a kernel may be scheduled
  * while its predecessor still runs, and waits here, before touching memory, until the predecessor has finished and
@@ -365,21 +388,21 @@ CountProposal(const Proposal & prop, BatchCounts & batch, int32_t * count, int32
  * particular order: the cell sums sort their entries by pixel) and counting them per cell.
  * The batch uses the counter set state->nextParity (it becomes state->parity); the set of the previous batch, whose
  * kernels have all finished, is cleared here for the next one. */
-template <unsigned int D>
+template <unsigned int D, typename TLabel>
 __global__ void
-ProposeKernel(GridParams      g,
-              ColourParams    cp,
-              const int32_t * labels,
-              const float *   density,
-              const double *  mass,
-              const double *  centroid,
-              double          tolerance,
-              SweepState *    state,
-              Proposal *      proposals,
-              int32_t *       counters,
-              int32_t *       touched,
-              int32_t *       cellStamp,
-              int32_t         nCells)
+ProposeKernel(GridParams     g,
+              ColourParams   cp,
+              const TLabel * labels,
+              const float *  density,
+              const double * mass,
+              const double * centroid,
+              double         tolerance,
+              SweepState *   state,
+              Proposal *     proposals,
+              int32_t *      counters,
+              int32_t *      touched,
+              int32_t *      cellStamp,
+              int32_t        nCells)
 {
   WaitForPrevious();
   if (state->halted)
@@ -401,65 +424,93 @@ ProposeKernel(GridParams      g,
            counters + static_cast<size_t>(1 - set) * 2 * static_cast<size_t>(nCells),
            nCells,
            false);
-  if (thread >= static_cast<size_t>(cp.count))
+  // Two passes over the block's pixels. The first, one thread per pixel, finds the pixels to evaluate (boundary
+  // pixels with a changed cell) and queues them in shared memory; the second evaluates the queue with consecutive
+  // threads, so the warps that compute the energies and the connectivity are full (most pixels are skipped).
+  struct Queued
   {
-    return;
+    int32_t p;
+    int32_t own;
+    int32_t nc;
+    int32_t idx[D];
+    int32_t candidates[2 * D];
+  };
+  __shared__ Queued  queue[Threads];
+  __shared__ int32_t queued;
+  if (threadIdx.x == 0)
+  {
+    queued = 0;
   }
-  const int32_t q = static_cast<int32_t>(thread);
-  int32_t       idx[D];
-  int32_t       p = 0, rest = q;
-  for (unsigned int k = 0; k < D; ++k)
+  __syncthreads();
+  if (thread < static_cast<size_t>(cp.count))
   {
-    idx[k] = cp.origin[k] + 2 * (rest % cp.sub[k]);
-    rest /= cp.sub[k];
-    p += idx[k] * g.stride[k];
-  }
-  const int32_t own = labels[p];
-  // DiscreteCVT::NeighbourCells: distinct other labels of the face neighbours, axis by axis, lower then upper
-  int32_t      candidates[2 * D];
-  unsigned int nc = 0;
-  for (unsigned int k = 0; k < D; ++k)
-  {
-    const int32_t lower = idx[k] > 0 ? p - g.stride[k] : p;
-    const int32_t upper = idx[k] + 1 < g.size[k] ? p + g.stride[k] : p;
-    for (int s = 0; s < 2; ++s)
+    int32_t       idx[D];
+    const int32_t p = ColourIndex<D>(g, cp, static_cast<int32_t>(thread), idx);
+    const int32_t own = static_cast<int32_t>(labels[p]);
+    // DiscreteCVT::NeighbourCells: distinct other labels of the face neighbours, axis by axis, lower then upper
+    int32_t      candidates[2 * D];
+    unsigned int nc = 0;
+    for (unsigned int k = 0; k < D; ++k)
     {
-      const int32_t l = labels[s == 0 ? lower : upper];
-      bool          known = l == own;
-      for (unsigned int j = 0; j < nc; ++j)
+      const int32_t lower = idx[k] > 0 ? p - g.stride[k] : p;
+      const int32_t upper = idx[k] + 1 < g.size[k] ? p + g.stride[k] : p;
+      for (int s = 0; s < 2; ++s)
       {
-        known |= candidates[j] == l;
+        const int32_t l = static_cast<int32_t>(labels[s == 0 ? lower : upper]);
+        bool          known = l == own;
+        for (unsigned int j = 0; j < nc; ++j)
+        {
+          known |= candidates[j] == l;
+        }
+        candidates[nc] = l;
+        nc += known ? 0u : 1u;
       }
-      candidates[nc] = l;
-      nc += known ? 0u : 1u;
     }
-  }
-  // Skip a pixel none of whose cells (its own, the candidates) changed or took part in a proposal since the colour's
-  // previous batch: its inputs are those of its previous evaluation, which found no swap.
-  bool changed = false;
-  if (nc > 0)
-  {
-    changed = cellStamp[own] >= since;
-    for (unsigned int c = 0; c < nc; ++c)
+    // Skip a pixel none of whose cells (its own, the candidates) changed or took part in a proposal since the
+    // colour's previous batch: its inputs are those of its previous evaluation, which found no swap.
+    bool changed = false;
+    if (nc > 0)
     {
-      changed |= cellStamp[candidates[c]] >= since;
+      changed = cellStamp[own] >= since;
+      for (unsigned int c = 0; c < nc; ++c)
+      {
+        changed |= cellStamp[candidates[c]] >= since;
+      }
+    }
+    if (changed)
+    {
+      Queued & e = queue[atomicAdd(&queued, 1)];
+      e.p = p;
+      e.own = own;
+      e.nc = static_cast<int32_t>(nc);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        e.idx[k] = idx[k];
+      }
+      for (unsigned int c = 0; c < 2 * D; ++c)
+      {
+        e.candidates[c] = candidates[c];
+      }
     }
   }
+  __syncthreads();
   bool     flag = false;
   Proposal prop{};
-  if (changed)
+  if (static_cast<int32_t>(threadIdx.x) < queued)
   {
-    const double w = static_cast<double>(density[p]);
-    const double mi = mass[own];
+    const Queued & e = queue[threadIdx.x];
+    const int32_t  p = e.p, own = e.own;
+    const double   w = static_cast<double>(density[p]);
+    const double   mi = mass[own];
     if (mi - w > 0.0)
     {
       double x[D];
-      PositionOf<D>(g, idx, x);
+      PositionOf<D>(g, e.idx, x);
       double  best = -tolerance * w;
       int32_t bestLabel = own;
-      for (unsigned int c = 0; c < nc; ++c)
+      for (int32_t c = 0; c < e.nc; ++c)
       {
-        const int32_t j = candidates[c];
+        const int32_t j = e.candidates[c];
         const double  dE = SwapEnergyChange<D>(w, x, mi, &centroid[own * D], mass[j], &centroid[j * D]);
         if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
         {
@@ -467,7 +518,7 @@ ProposeKernel(GridParams      g,
           bestLabel = j;
         }
       }
-      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, idx, own))
+      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, e.idx, own))
       {
         flag = true;
         prop = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
@@ -477,9 +528,8 @@ ProposeKernel(GridParams      g,
       }
     }
   }
-  // one atomic per converged group of lanes for the slots
-  const unsigned int active = __activemask();
-  const unsigned int want = __ballot_sync(active, flag);
+  // one atomic per warp for the slots (every lane of the block is here)
+  const unsigned int want = __ballot_sync(0xffffffffu, flag);
   if (flag)
   {
     BatchCounts &      batch = state->batch[set];
@@ -684,9 +734,13 @@ __device__ inline double
 BatchEnergyChange(const int32_t * count, const double * term, int32_t nCells)
 {
   double sum = 0.0;
+  // both loads unconditional (term is zeroed at allocation), so the loads of several cells are in flight at once
+#pragma unroll 4
   for (int32_t c = threadIdx.x; c < nCells; c += blockDim.x)
   {
-    sum += count[c] > 0 ? term[c] : 0.0;
+    const int32_t n = count[c];
+    const double  t = term[c];
+    sum += n > 0 ? t : 0.0;
   }
   using Reduce = cub::BlockReduce<double, Threads>;
   __shared__ typename Reduce::TempStorage storage;
@@ -736,6 +790,7 @@ CommitBatch(size_t           thread,
             const double *   deltaMass,
             const double *   deltaMoment,
             int32_t *        labels,
+            uint16_t *       shortLabels,
             double *         mass,
             double *         centroid)
 {
@@ -744,6 +799,10 @@ CommitBatch(size_t           thread,
     if (i < static_cast<size_t>(n))
     {
       labels[proposals[i].pixel] = proposals[i].to;
+      if (shortLabels)
+      {
+        shortLabels[proposals[i].pixel] = static_cast<uint16_t>(proposals[i].to);
+      }
     }
     if (i < static_cast<size_t>(nt))
     {
@@ -783,6 +842,7 @@ CommitKernel(SweepState *     state,
              const double *   deltaMass,
              const double *   deltaMoment,
              int32_t *        labels,
+             uint16_t *       shortLabels,
              double *         mass,
              double *         centroid)
 {
@@ -801,6 +861,7 @@ CommitKernel(SweepState *     state,
                  deltaMass,
                  deltaMoment,
                  labels,
+                 shortLabels,
                  mass,
                  centroid);
 }
@@ -819,6 +880,7 @@ DecideCommitKernel(SweepState *     state,
                    const double *   deltaMass,
                    const double *   deltaMoment,
                    int32_t *        labels,
+                   uint16_t *       shortLabels,
                    double *         mass,
                    double *         centroid)
 {
@@ -849,6 +911,7 @@ DecideCommitKernel(SweepState *     state,
                    deltaMass,
                    deltaMoment,
                    labels,
+                   shortLabels,
                    mass,
                    centroid);
   }
@@ -885,6 +948,16 @@ EndSweepKernel(SweepState * state, cudaGraphConditionalHandle loop, int32_t inGr
   if (inGraph)
   {
     cudaGraphSetConditional(loop, stop ? 0u : 1u);
+  }
+}
+
+/** The 16-bit copy of labels below 65536. */
+__global__ void
+ShortLabelsKernel(const int32_t * labels, int32_t n, uint16_t * shortLabels)
+{
+  for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+  {
+    shortLabels[i] = static_cast<uint16_t>(labels[i]);
   }
 }
 
@@ -1070,6 +1143,9 @@ struct CVTSwapOptimizer::Impl
   DeviceBuffer<float>            ownDensity;
   const float *                  density{ nullptr };
   DeviceBuffer<int32_t>          labels;
+  DeviceBuffer<uint16_t>         shortLabels; // 16-bit copy read by Propose when every label fits (useShortLabels)
+  bool                           useShortLabels{ false };
+  bool                           shortLabelsAllowed{ true };
   bool                           hasLabels{ false };
   DeviceBuffer<uint32_t>         iota, sortedKeys, sortedPixels;
   size_t                         nCells{ 0 };
@@ -1085,7 +1161,7 @@ struct CVTSwapOptimizer::Impl
 
   // one whole sweep (all colours) as a CUDA graph, replayed every sweep; rebuilt when what it captured changes
   cudaGraphExec_t sweepGraph{ nullptr };
-  const void *    graphKey[5]{};
+  const void *    graphKey[6]{};
   bool            graphUnavailable{ false };
   // all the sweeps of an Optimize call as one graph: a conditional while node around a sweep and EndSweepKernel,
   // so the host does not wait for every sweep (falls back to sweepGraph where conditional nodes are unavailable)
@@ -1188,6 +1264,7 @@ struct CVTSwapOptimizer::Impl
       deltaMass.Resize(nCells);
       deltaMoment.Resize(nCells * D);
       term.Resize(nCells);
+      term.Zero(stream);           // BatchEnergyChange reads every cell's term
       counters.Resize(4 * nCells); // two counter sets of (count, fill) per cell
       segment.Resize(nCells);
       touched.Resize(nCells);
@@ -1209,6 +1286,15 @@ struct CVTSwapOptimizer::Impl
       std::ostringstream os;
       os << "CVTSwapOptimizer: label " << l << " at pixel " << r.badPixel << " is outside [0, " << numberOfCells << ")";
       throw CudaError(os.str());
+    }
+    // the 16-bit copy that Propose reads (half the bytes of the labels: an L2-resident working set for larger
+    // images), kept by the commits
+    useShortLabels = shortLabelsAllowed && numberOfCells <= size_t{ 65536 };
+    if (useShortLabels)
+    {
+      shortLabels.Resize(numberOfPixels);
+      ShortLabelsKernel<<<strideBlocks, Threads, 0, stream>>>(labels.Data(), n, shortLabels.Data());
+      CheckLaunch("ShortLabelsKernel");
     }
     int endBit = 1;
     while (endBit < 31 && (size_t{ 1 } << endBit) < numberOfCells)
@@ -1270,13 +1356,28 @@ struct CVTSwapOptimizer::Impl
   void
   EnqueuePropose(const ColourParams & cp)
   {
-    LaunchAfter(ProposeKernel<D>,
+    if (uint16_t * shortCopy = ShortLabels())
+    {
+      EnqueuePropose<D>(cp, static_cast<const uint16_t *>(shortCopy));
+    }
+    else
+    {
+      EnqueuePropose<D>(cp, static_cast<const int32_t *>(labels.Data()));
+    }
+  }
+
+  /** Propose reading the labels from `labelsToRead` (the labels or their 16-bit copy). */
+  template <unsigned int D, typename TLabel>
+  void
+  EnqueuePropose(const ColourParams & cp, const TLabel * labelsToRead)
+  {
+    LaunchAfter(ProposeKernel<D, TLabel>,
                 Blocks(static_cast<size_t>(std::max(cp.count, 1)), Threads),
                 Threads,
                 stream,
                 grid,
                 cp,
-                labels.Data(),
+                labelsToRead,
                 density,
                 mass.Data(),
                 centroid.Data(),
@@ -1385,6 +1486,7 @@ struct CVTSwapOptimizer::Impl
                 deltaMass.Data(),
                 deltaMoment.Data(),
                 labels.Data(),
+                ShortLabels(),
                 mass.Data(),
                 centroid.Data());
     CheckLaunch("CommitKernel");
@@ -1411,6 +1513,7 @@ struct CVTSwapOptimizer::Impl
                 deltaMass.Data(),
                 deltaMoment.Data(),
                 labels.Data(),
+                ShortLabels(),
                 mass.Data(),
                 centroid.Data());
     CheckLaunch("DecideCommitKernel");
@@ -1467,18 +1570,28 @@ struct CVTSwapOptimizer::Impl
     Check(cudaStreamSynchronize(stream), "upload (synchronise)"); // value lives on this stack frame
   }
 
+  /** The 16-bit copy of the labels that the sweeps read and keep, or null when the labels do not fit. */
+  uint16_t *
+  ShortLabels()
+  {
+    return useShortLabels ? shortLabels.Data() : nullptr;
+  }
+
   /** Drops both graphs when the buffers they captured have changed, and records the current ones. */
   void
   ForgetStaleGraphs()
   {
-    const void * key[5] = {
-      density, mass.Data(), temp.Data(), labels.Data(), reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells))
-    };
-    if ((sweepGraph || loopGraph) && !std::equal(key, key + 5, graphKey))
+    const void * key[6] = { density,
+                            mass.Data(),
+                            temp.Data(),
+                            labels.Data(),
+                            reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells)),
+                            ShortLabels() };
+    if ((sweepGraph || loopGraph) && !std::equal(key, key + 6, graphKey))
     {
       DropGraph();
     }
-    std::copy(key, key + 5, graphKey);
+    std::copy(key, key + 6, graphKey);
   }
 
   /** Captures the launches of `enqueue` into `graph` (after `dependency` when not null); false on any failure. */
@@ -1750,6 +1863,13 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
         cp.sub[k] = g.size[k] > cp.origin[k] ? (g.size[k] - cp.origin[k] + 1) / 2 : 0;
         cp.count *= k < dimension ? cp.sub[k] : 1;
       }
+      for (unsigned int k = 0; k < dimension; ++k)
+      {
+        // exact for every quotient the kernels take (rest < count) when count x sub < 2^32
+        const uint64_t sub = static_cast<uint64_t>(std::max(cp.sub[k], 1));
+        cp.reciprocal[k] =
+          static_cast<uint64_t>(cp.count) * sub < (uint64_t{ 1 } << 32) ? ((uint64_t{ 1 } << 32) + sub - 1) / sub : 0;
+      }
       m.colours[c] = cp;
       m.maxColourCount = std::max(m.maxColourCount, cp.count);
     }
@@ -1918,6 +2038,12 @@ void
 CVTSwapOptimizer::SetDeviceLoop(bool enabled)
 {
   m_Impl->deviceLoop = enabled;
+}
+
+void
+CVTSwapOptimizer::SetShortLabels(bool enabled)
+{
+  m_Impl->shortLabelsAllowed = enabled;
 }
 
 double

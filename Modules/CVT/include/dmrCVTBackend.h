@@ -92,6 +92,11 @@ public:
    * conditional nodes; otherwise one graph launch and one host check per sweep. Same results. Default on. */
   void
   SetDeviceLoop(bool enabled);
+  /** Whether the sweeps read a 16-bit copy of the labels (kept by the commits; half the memory traffic of the
+   * proposals) when every label fits, i.e. with at most 65536 cells; from the next SetLabels or KeepLabels on.
+   * Same results. Default on. */
+  void
+  SetShortLabels(bool enabled);
 
   /** Copies the labels to host memory (one value per pixel). */
   Status

@@ -94,6 +94,11 @@ CVTSwapOptimizer::SetDeviceLoop(bool)
 {
 }
 
+void
+CVTSwapOptimizer::SetShortLabels(bool)
+{
+}
+
 double
 CVTSwapOptimizer::Energy() const
 {
