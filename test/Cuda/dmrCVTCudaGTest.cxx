@@ -163,6 +163,8 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
   ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
   ASSERT_TRUE(Ok(gpu.SetLabels(cpu.GetLabels().data(), numberOfCells, false)));
   EXPECT_EQ(gpu.NumberOfCells(), numberOfCells);
+  // the memory it reports holds at least the labels, their sort keys and pixel lists, and the 16-bit copy
+  EXPECT_GE(gpu.AllocatedBytes(), grid.numberOfPixels * (4 * sizeof(int32_t) + (shortLabels ? sizeof(uint16_t) : 0)));
   ExpectSameState<D>(cpu, gpu, "after SetLabels");
 
   auto run = [&](const char * phase) {

@@ -112,6 +112,9 @@ public:
   Energy() const;
   size_t
   NumberOfCells() const;
+  /** Device memory held by the optimiser's buffers (bytes; they grow to the largest input and are kept). */
+  size_t
+  AllocatedBytes() const;
 
 private:
   struct Impl;

@@ -106,6 +106,12 @@ CVTSwapOptimizer::Energy() const
 }
 
 size_t
+CVTSwapOptimizer::AllocatedBytes() const
+{
+  return 0;
+}
+
+size_t
 CVTSwapOptimizer::NumberOfCells() const
 {
   return 0;

@@ -197,6 +197,11 @@ public:
   {
     return m_Size;
   }
+  size_t
+  Bytes() const
+  {
+    return m_Size * sizeof(T);
+  }
 
 private:
   T *    m_Data{ nullptr };

@@ -760,6 +760,14 @@ LabelSummarizer::UploadedLabels() const
   return m_Impl->uploaded.Data();
 }
 
+size_t
+LabelSummarizer::AllocatedBytes() const
+{
+  const Impl & m = *m_Impl;
+  return m.uploaded.Bytes() + m.stats.Bytes() + m.keys.Bytes() + m.sortedKeys.Bytes() + m.numberSelected.Bytes() +
+         m.cubTemp.Bytes();
+}
+
 Status
 LabelSummarizer::SummarizeHostLabels(unsigned int    dimension,
                                      const size_t *  size,

@@ -66,6 +66,9 @@ public:
   /** The device copy of the last UploadLabels (nullptr before the first). */
   const int32_t *
   UploadedLabels() const;
+  /** Device memory held by the summariser's buffers (bytes; they grow to the largest input and are kept). */
+  size_t
+  AllocatedBytes() const;
 
   /** UploadLabels, then Summarize on the uploaded copy. */
   Status

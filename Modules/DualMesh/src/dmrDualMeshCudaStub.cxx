@@ -62,6 +62,12 @@ LabelSummarizer::UploadedLabels() const
   return nullptr;
 }
 
+size_t
+LabelSummarizer::AllocatedBytes() const
+{
+  return 0;
+}
+
 Status
 LabelSummarizer::SummarizeHostLabels(unsigned int, const size_t *, const int32_t *, size_t, LabelSummary &)
 {

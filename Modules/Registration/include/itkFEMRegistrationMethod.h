@@ -191,7 +191,9 @@ public:
    * 0 (default): max(1000, 4 x free degrees of freedom). */
   itkSetMacro(DeviceSolverMaximumIterations, SizeValueType);
   itkGetConstMacro(DeviceSolverMaximumIterations, SizeValueType);
-  /** Device memory the CUDA back-end held at its peak (bytes; 0 on the CPU path). */
+  /** Device memory the CUDA back-end's buffers held at their peak (bytes; 0 on the CPU path): the registration
+   * context's largest allocation plus the CVT optimiser's and the label summary's buffers, which are held throughout
+   * the iterations. The CUDA context and the driver's own allocations are not included. */
   itkGetConstMacro(DeviceBytes, SizeValueType);
 
   /** Results. */

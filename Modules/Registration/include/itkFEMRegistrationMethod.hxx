@@ -944,7 +944,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.DownloadField(w.data()), "field download");
     this->WriteGridFieldToImage(w, field);
   }
-  m_DeviceBytes = context.AllocatedBytes();
+  // everything the back-end allocated: the registration context at its peak, and the CVT optimiser's and the label
+  // summary's buffers, which it holds throughout the iterations
+  m_DeviceBytes = context.AllocatedBytes() + cvt.AllocatedBytes() + summarizer.AllocatedBytes();
   m_Timing.registration += seconds(t0, Clock::now());
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
