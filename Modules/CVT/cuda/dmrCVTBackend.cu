@@ -2053,19 +2053,31 @@ size_t
 CVTSwapOptimizer::AllocatedBytes() const
 {
   const Impl & m = *m_Impl;
-  size_t s = m.ownDensity.Bytes() + m.labels.Bytes() + m.shortLabels.Bytes() + m.iota.Bytes() + m.sortedKeys.Bytes() +
-             m.sortedPixels.Bytes() + m.proposals.Bytes() + m.entryKeys.Bytes() + m.state.Bytes() + m.report.Bytes() +
-             m.temp.Bytes();
-  for (const auto * b : { &m.mass, &m.centroid, &m.deltaMass, &m.deltaMoment, &m.term, &m.partial })
-  {
-    s += b->Bytes();
-  }
-  for (const auto * b :
-       { &m.counters, &m.segment, &m.touched, &m.entries, &m.sortedEntries, &m.cellStart, &m.cellEnd, &m.cellStamp })
-  {
-    s += b->Bytes();
-  }
-  return s;
+  return BytesOf(m.ownDensity,
+                 m.labels,
+                 m.shortLabels,
+                 m.iota,
+                 m.sortedKeys,
+                 m.sortedPixels,
+                 m.mass,
+                 m.centroid,
+                 m.deltaMass,
+                 m.deltaMoment,
+                 m.term,
+                 m.partial,
+                 m.counters,
+                 m.segment,
+                 m.touched,
+                 m.entries,
+                 m.sortedEntries,
+                 m.cellStart,
+                 m.cellEnd,
+                 m.cellStamp,
+                 m.proposals,
+                 m.entryKeys,
+                 m.state,
+                 m.report,
+                 m.temp);
 }
 
 double

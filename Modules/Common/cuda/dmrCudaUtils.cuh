@@ -208,6 +208,14 @@ private:
   size_t m_Size{ 0 };
 };
 
+/** The bytes held by the given buffers, of any element types. */
+template <typename... TBuffers>
+size_t
+BytesOf(const TBuffers &... buffers)
+{
+  return (size_t{ 0 } + ... + buffers.Bytes());
+}
+
 inline unsigned int
 Blocks(size_t n, unsigned int threads)
 {

@@ -764,8 +764,7 @@ size_t
 LabelSummarizer::AllocatedBytes() const
 {
   const Impl & m = *m_Impl;
-  return m.uploaded.Bytes() + m.stats.Bytes() + m.keys.Bytes() + m.sortedKeys.Bytes() + m.numberSelected.Bytes() +
-         m.cubTemp.Bytes();
+  return BytesOf(m.uploaded, m.stats, m.keys, m.sortedKeys, m.numberSelected, m.cubTemp);
 }
 
 Status

@@ -1606,21 +1606,39 @@ struct RegistrationContext::Impl
     {
       for (const auto & b : *v)
       {
-        s += b.Size() * sizeof(float);
+        s += b.Bytes();
       }
     }
-    s += mask.Size() + (w.Size() + bufferA.Size() + bufferB.Size() + force.Size() + density.Size()) * sizeof(float);
-    s += owner.Size() * sizeof(int) + (nodes.Size() + affine.Size() + nodal.Size()) * sizeof(double) +
-         nodalSums.Size() * sizeof(unsigned long long);
-    s += (bounds.Size() + rowStart.Size()) * sizeof(long long) +
-         (elements.Size() + incidenceStart.Size() + incidence.Size()) * sizeof(int);
-    s += fixedNodes.Size() + cgState.Size() * sizeof(int);
-    for (const auto * b :
-         { &geometry, &stress, &inverseDiagonal, &cgX, &cgR, &cgZ, &cgP, &cgQ, &cgPartials, &cgScalars })
-    {
-      s += b->Size() * sizeof(double);
-    }
-    return s;
+    return s + BytesOf(mask,
+                       w,
+                       bufferA,
+                       bufferB,
+                       force,
+                       density,
+                       owner,
+                       sums,
+                       scratch64,
+                       nodes,
+                       affine,
+                       nodal,
+                       nodalSums,
+                       bounds,
+                       rowStart,
+                       elements,
+                       incidenceStart,
+                       incidence,
+                       fixedNodes,
+                       geometry,
+                       stress,
+                       inverseDiagonal,
+                       cgX,
+                       cgR,
+                       cgZ,
+                       cgP,
+                       cgQ,
+                       cgPartials,
+                       cgScalars,
+                       cgState);
   }
 };
 
