@@ -23,6 +23,7 @@
 #include <cmath>
 #include <cstring>
 #include <random>
+#include <set>
 
 namespace
 {
@@ -268,6 +269,65 @@ TEST(FieldMaxima, ParallelEqualsSequential)
   EXPECT_EQ(itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data(), threader),
             itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()));
   EXPECT_GT(itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()), 50.0 / 1.3);
+  // both in one pass: the same values, with or without the threader
+  for (itk::MultiThreaderBase * t : std::array<itk::MultiThreaderBase *, 2>{ threader.GetPointer(), nullptr })
+  {
+    const auto bounds = itk::dmr::FieldBoundsInPixels<2>(grid, v.data(), t);
+    EXPECT_EQ(bounds.displacement, itk::dmr::MaximumDisplacementInPixels<2>(grid, v.data()));
+    EXPECT_EQ(bounds.neighbourDifference, itk::dmr::MaximumNeighbourDifferenceInPixels<2>(grid, v.data()));
+  }
+}
+
+// ExponentialField's squarings alternate between out and scratch: the result is that of scaling, then composing the
+// field with itself squarings times, bit for bit, for odd and even counts, also when scratch holds v (the registration
+// passes the update's own storage), and the bounds it reports are FieldBoundsInPixels
+TEST(ExponentialField, SquaringsWithoutCopiesGiveTheSquaredField)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 53, 41 }, std::array<double, 2>{ 1.2, 0.9 });
+  auto                    threader = itk::MultiThreaderBase::New();
+  threader->SetNumberOfWorkUnits(3);
+  std::set<unsigned int> counts;
+  for (const float amplitude : { 0.3f, 0.9f, 1.7f, 3.1f, 6.5f })
+  {
+    std::vector<float> v(grid.numberOfPixels * 2);
+    for (size_t p = 0; p < grid.numberOfPixels; ++p)
+    {
+      const auto idx = grid.Index(p);
+      v[2 * p] = amplitude * static_cast<float>(std::sin(0.11 * idx[0] + 0.07 * idx[1]));
+      v[2 * p + 1] = amplitude * static_cast<float>(std::cos(0.05 * idx[0] - 0.13 * idx[1]));
+    }
+    // reference: the loop of scale, copy and compose
+    const auto   expected = itk::dmr::FieldBoundsInPixels<2>(grid, v.data());
+    const double maxNorm = std::max(expected.displacement, expected.neighbourDifference);
+    unsigned int squarings = 0;
+    while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
+    {
+      ++squarings;
+    }
+    std::vector<float> reference(v.size()), copy(v.size());
+    const float        scale = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
+    for (size_t i = 0; i < v.size(); ++i)
+    {
+      reference[i] = v[i] * scale;
+    }
+    for (unsigned int s = 0; s < squarings; ++s)
+    {
+      copy = reference;
+      itk::dmr::ComposeFields<2>(grid, copy.data(), copy.data(), reference.data(), nullptr);
+    }
+
+    std::vector<float>    out(v.size()), scratch;
+    itk::dmr::FieldBounds bounds;
+    EXPECT_EQ(itk::dmr::ExponentialField<2>(grid, v.data(), out.data(), scratch, threader, &bounds), squarings);
+    EXPECT_EQ(out, reference) << "amplitude " << amplitude;
+    EXPECT_EQ(bounds.displacement, expected.displacement);
+    EXPECT_EQ(bounds.neighbourDifference, expected.neighbourDifference);
+    std::vector<float> inScratch = v, out2(v.size());
+    EXPECT_EQ(itk::dmr::ExponentialField<2>(grid, inScratch.data(), out2.data(), inScratch, threader), squarings);
+    EXPECT_EQ(out2, reference) << "amplitude " << amplitude << ", v in scratch";
+    counts.insert(squarings);
+  }
+  EXPECT_TRUE(counts.count(2) && counts.count(3)) << "odd and even numbers of squarings";
 }
 
 // the index advanced pixel by pixel is grid.Index(p), from any start, across rows and slices

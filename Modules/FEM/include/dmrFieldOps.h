@@ -113,38 +113,94 @@ MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v, MultiT
   });
 }
 
+/** The two bounds of ExponentialField in one pass: MaximumDisplacementInPixels (displacement) and
+ * MaximumNeighbourDifferenceInPixels (neighbourDifference), the same values as the two functions give. */
+struct FieldBounds
+{
+  double displacement{ 0.0 };
+  double neighbourDifference{ 0.0 };
+};
+
+template <unsigned int D>
+FieldBounds
+FieldBoundsInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
+{
+  const size_t             nChunks = 64;
+  const size_t             chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  std::vector<FieldBounds> partial(nChunks);
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
+    FieldBounds  m;
+    ForEachPixel(grid, std::min(end, c * chunk), end, [&](size_t p, const std::array<int64_t, D> & idx) {
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        m.displacement = std::max(m.displacement, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+        if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
+        {
+          continue;
+        }
+        const size_t q = p + grid.stride[k];
+        for (unsigned int r = 0; r < D; ++r)
+        {
+          m.neighbourDifference = std::max(
+            m.neighbourDifference, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
+        }
+      }
+    });
+    partial[c] = m;
+  });
+  FieldBounds bounds;
+  for (const auto & m : partial)
+  {
+    bounds.displacement = std::max(bounds.displacement, m.displacement);
+    bounds.neighbourDifference = std::max(bounds.neighbourDifference, m.neighbourDifference);
+  }
+  return bounds;
+}
+
 /** exp(v) by scaling and squaring (Vercauteren et al. 2009, paper ref. [39]): v is halved until both its largest
  * displacement and its largest change between neighbouring pixels are below half a pixel, then the field is
  * composed with itself as many times. The second bound keeps each small step invertible where v varies sharply
  * (thin elements of a static mesh), so det J stays positive. scratch is resized as needed; it may be the storage
- * of v itself (v is read completely before scratch is written), which saves one field of memory. Returns the
- * number of squarings. */
+ * of v itself (v is read completely before scratch is written), which saves one field of memory. The squarings
+ * alternate between out and scratch (no copies), starting where the last one lands in out. Returns the number of
+ * squarings; bounds, when given, receives v's FieldBoundsInPixels. */
 template <unsigned int D>
 unsigned int
 ExponentialField(const Grid<D> &      grid,
                  const float *        v,
                  float *              out,
                  std::vector<float> & scratch,
-                 MultiThreaderBase *  threader)
+                 MultiThreaderBase *  threader,
+                 FieldBounds *        bounds = nullptr)
 {
-  const size_t n = grid.numberOfPixels * D;
-  const double maxNorm = std::max(MaximumDisplacementInPixels<D>(grid, v, threader),
-                                  MaximumNeighbourDifferenceInPixels<D>(grid, v, threader));
+  const size_t      n = grid.numberOfPixels * D;
+  const FieldBounds b = FieldBoundsInPixels<D>(grid, v, threader);
+  if (bounds)
+  {
+    *bounds = b;
+  }
+  const double maxNorm = std::max(b.displacement, b.neighbourDifference);
   unsigned int squarings = 0;
   while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
   {
     ++squarings;
   }
   const float scale = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
-  for (size_t i = 0; i < n; ++i)
-  {
-    out[i] = v[i] * scale;
-  }
-  scratch.resize(n);
+  scratch.resize(n); // before `from` is taken: v may live in scratch
+  float * buffers[2] = { out, scratch.data() };
+  float * from = buffers[squarings % 2];
+  ParallelForChunks(threader, n, [&](size_t b0, size_t e0) {
+    for (size_t i = b0; i < e0; ++i)
+    {
+      from[i] = v[i] * scale;
+    }
+  });
   for (unsigned int s = 0; s < squarings; ++s)
   {
-    std::copy(out, out + n, scratch.begin());
-    ComposeFields<D>(grid, scratch.data(), scratch.data(), out, threader); // out = e o e
+    float * to = from == out ? scratch.data() : out;
+    ComposeFields<D>(grid, from, from, to, threader); // to = e o e
+    from = to;
   }
   return squarings;
 }
