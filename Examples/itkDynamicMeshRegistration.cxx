@@ -786,7 +786,9 @@ Run(const Options & opt)
        << "  \"timing_s\": {\"total\": " << t.total << ", \"initial_tessellation\": " << t.initialTessellation
        << ", \"tessellation_optimization\": " << t.tessellationOptimization
        << ", \"mesh_construction\": " << t.meshConstruction << ", \"barycentric\": " << t.barycentric
-       << ", \"registration\": " << t.registration << ", \"fem_solve\": " << t.femSolve << "},\n"
+       << ", \"registration\": " << t.registration << ", \"fem_solve\": " << t.femSolve
+       << ", \"registration_force\": " << t.force << ", \"registration_gather\": " << t.gather
+       << ", \"registration_update\": " << t.update << "},\n"
        << "  \"ssd_initial\": " << ssdInitial << ",\n"
        << "  \"ssd_final\": " << method->GetFinalSSD() << ",\n"
        << "  \"mssd_initial\": " << mssdInitial << ",\n"

@@ -205,6 +205,10 @@ RunsAgree(MeshMode     mode,
   EXPECT_LE(t.initialTessellation + t.tessellationOptimization + t.meshConstruction + t.barycentric + t.registration,
             t.total);
   EXPECT_LE(t.femSolve, t.registration);
+  EXPECT_GT(t.force, 0.0);
+  EXPECT_GT(t.gather, 0.0);
+  EXPECT_GT(t.update, 0.0);
+  EXPECT_LE(t.force + t.gather + t.update + t.femSolve, t.registration);
 }
 
 /** The device elastic solve (matrix-free CG) against LinearElasticFEMSolver on the same mesh: the solution, u = 0 on

@@ -113,6 +113,15 @@ TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
     EXPECT_EQ(r.nodes, method->GetCurrentSimplexMesh().NumberOfNodes() > 0 ? r.nodes : 0u);
     EXPECT_GE(r.nodes, 4u);
   }
+  // the stage times: every part of the registration stage was timed and the parts fit inside it
+  const auto & t = method->GetTiming();
+  EXPECT_GT(t.force, 0.0);
+  EXPECT_GT(t.gather, 0.0);
+  EXPECT_GT(t.update, 0.0);
+  EXPECT_GT(t.femSolve, 0.0);
+  EXPECT_LE(t.force + t.gather + t.update + t.femSolve, t.registration);
+  EXPECT_LE(t.initialTessellation + t.tessellationOptimization + t.meshConstruction + t.barycentric + t.registration,
+            t.total);
 }
 
 TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)

@@ -121,6 +121,11 @@ public:
     double barycentric{ 0 };
     double registration{ 0 };
     double femSolve{ 0 }; // part of registration: stiffness set-up and solves (CPU assembly, or the device solve)
+    // parts of registration as well: the force and density evaluations (the safeguard's included), the gathering of
+    // the force to the nodes, and the update (u at the pixels, exp(u), W o exp(u), and the reverts of rejected steps)
+    double force{ 0 };
+    double gather{ 0 };
+    double update{ 0 };
     double total{ 0 };
   };
 

@@ -245,6 +245,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     forceIsCurrent = false;
     record.mssd = m_DensityFilter->GetMSSD() * dV;
     record.ssd = m_DensityFilter->GetSSD() * dV;
+    m_Timing.force += seconds(t0, Clock::now());
     m_Timing.registration += seconds(t0, Clock::now());
 
     // 2. dynamic mesh
@@ -284,6 +285,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     // 3-5. nodal forces, solve, beta, interpolate, exponential update
     t0 = Clock::now();
     bary.Gather(m_DensityFilter->GetGridForce().data(), dV, nodalForce, threader);
+    m_Timing.gather += seconds(t0, Clock::now());
     if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd, [&] {
           m_Solver->Solve(nodalForce, nodalU);
           record.solverIterations = m_Solver->GetLastIterations();
@@ -313,16 +315,21 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     forceIsCurrent = this->SafeguardedStep(
       record,
       [&](double scale) {
+        const auto t1 = Clock::now();
         bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
-        const double maxUpdate = dmr::MaximumDisplacementInPixels<D>(grid, update.data(), threader);
-        dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
+        dmr::FieldBounds bounds;
+        dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader, &bounds);
+        const double maxUpdate = bounds.displacement;
         dmr::ComposeFields<D>(grid, w.data(), expUpdate.data(), update.data(), threader);
         this->WriteGridFieldToImage(update, field);
+        m_Timing.update += seconds(t1, Clock::now());
         return maxUpdate;
       },
       [&] {
+        const auto t1 = Clock::now();
         field->Modified();
         m_DensityFilter->Update();
+        m_Timing.force += seconds(t1, Clock::now());
         return m_DensityFilter->GetMSSD() * dV;
       },
       [] {}); // w still holds W
@@ -347,6 +354,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   {
     field->Modified();
     m_DensityFilter->Update();
+    m_Timing.force += seconds(t0, Clock::now());
   }
   m_FinalSSD = m_DensityFilter->GetSSD() * dV;
   m_FinalMSSD = m_DensityFilter->GetMSSD() * dV;
@@ -773,6 +781,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     const double alpha =
       m_DensityFilter->ComputeAlpha(statistics.sumSquaredForce / static_cast<double>(statistics.inside));
     dmr::ThrowOnError(context.AddToDensity(alpha), "density");
+    m_Timing.force += seconds(t0, Clock::now());
     m_Timing.registration += seconds(t0, Clock::now());
 
     // 2. dynamic mesh: the swap optimisation reads the device density and keeps the labels on the device; the dual
@@ -842,6 +851,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     const SimplexMeshType & mesh = *m_CurrentMesh;
     nodalForce.resize(mesh.NumberOfNodes() * D);
     dmr::ThrowOnError(context.GatherForce(dV, nodalForce.data()), "force gathering");
+    m_Timing.gather += seconds(t0, Clock::now());
     const bool solved = this->SolveAndSetBeta(nodalForce, nodalU, record.mssd, [&] {
       if (deviceSolve)
       {
@@ -895,16 +905,24 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     forceIsCurrent = this->SafeguardedStep(
       record,
       [&](double scale) {
+        const auto   t1 = Clock::now();
         unsigned int squarings = 0;
         double       maxUpdate = 0.0;
         dmr::ThrowOnError(context.ApplyUpdate(nodalU.data(), scale / m_Beta, maxUpdate, squarings), "update");
+        m_Timing.update += seconds(t1, Clock::now());
         return maxUpdate;
       },
       [&] {
+        const auto t1 = Clock::now();
         dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "force");
+        m_Timing.force += seconds(t1, Clock::now());
         return statistics.mssd * dV;
       },
-      [&] { dmr::ThrowOnError(context.RevertUpdate(), "update"); });
+      [&] {
+        const auto t1 = Clock::now();
+        dmr::ThrowOnError(context.RevertUpdate(), "update");
+        m_Timing.update += seconds(t1, Clock::now());
+      });
     m_Timing.registration += seconds(t0, Clock::now());
 
     m_History.push_back(record);
@@ -917,6 +935,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   if (!forceIsCurrent)
   {
     dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "final force");
+    m_Timing.force += seconds(t0, Clock::now());
   }
   m_FinalSSD = statistics.ssd * dV;
   m_FinalMSSD = statistics.mssd * dV;
