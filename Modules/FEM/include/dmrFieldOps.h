@@ -187,7 +187,7 @@ ExponentialField(const Grid<D> &      grid,
     ++squarings;
   }
   const float scale = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
-  scratch.resize(n); // before `from` is taken: v may live in scratch
+  scratch.resize(n); // when v lives in scratch, scratch already has n values and nothing moves
   float * buffers[2] = { out, scratch.data() };
   float * from = buffers[squarings % 2];
   ParallelForChunks(threader, n, [&](size_t b0, size_t e0) {
