@@ -32,6 +32,7 @@
 #include "itk_zlib.h"
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
+#include <future>
 #include <string>
 #include <vector>
 
@@ -57,8 +58,29 @@ DicomSeriesFileNames(const std::string & directory)
   return files;
 }
 
-/** The image at path: a DICOM series when path is a directory, otherwise any file ITK can read. Throws
- * itk::ExceptionObject on failure (missing path, unknown format, empty directory). */
+/** True when the gzip file at path decompresses to the end of its stream with a valid trailer. ITK's readers do not
+ * notice a stream that ends early (they return what they got). */
+inline bool
+GzipStreamIsComplete(const std::string & path)
+{
+  gzFile file = gzopen(path.c_str(), "rb");
+  if (!file)
+  {
+    return false;
+  }
+  std::string buffer(1 << 20, '\0');
+  int         got = 0;
+  while ((got = gzread(file, &buffer[0], static_cast<unsigned int>(buffer.size()))) > 0)
+  {
+  }
+  const bool closed = gzclose(file) == Z_OK; // closed on every path
+  return got == 0 && closed;
+}
+
+/** The image at path: a DICOM series when path is a directory, otherwise any file ITK can read. A .gz file is
+ * checked to its trailer (GzipStreamIsComplete) on another thread while ITK reads it, so a truncated file is an
+ * error and the check costs no extra time. Throws itk::ExceptionObject on failure (missing path, unknown format,
+ * empty directory, truncated or corrupt compressed file). */
 template <typename TImage>
 typename TImage::Pointer
 ReadImageOrDicomSeries(const std::string & path)
@@ -75,14 +97,24 @@ ReadImageOrDicomSeries(const std::string & path)
     reader->Update();
     return reader->GetOutput();
   }
+  std::future<bool> complete;
+  if (itksys::SystemTools::GetFilenameLastExtension(path) == ".gz")
+  {
+    complete = std::async(std::launch::async, [path] { return GzipStreamIsComplete(path); });
+  }
   auto reader = itk::ImageFileReader<TImage>::New();
   reader->SetFileName(path);
-  reader->Update();
+  reader->Update(); // on an exception, the future's destructor waits for the check
+  if (complete.valid() && !complete.get())
+  {
+    throw itk::ExceptionObject(
+      __FILE__, __LINE__, path + ": the compressed file is truncated or corrupt", ITK_LOCATION);
+  }
   return reader->GetOutput();
 }
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
- * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Detects truncated .gz files,
- * which ITK's readers do not notice. Throws UsageError (bad input) otherwise. */
+ * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Reads the header only (a
+ * truncated .gz file is found by ReadImageOrDicomSeries). Throws UsageError (bad input) otherwise. */
 inline unsigned int
 ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
 {
@@ -104,28 +136,20 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
     }
     return 3;
   }
-  if (itksys::SystemTools::GetFilenameLastExtension(path) == ".gz")
-  {
-    // ITK's readers do not notice a gzip stream that ends early: read it through once and check its trailer
-    gzFile      file = gzopen(path.c_str(), "rb");
-    std::string buffer(1 << 20, '\0');
-    int         got = 0;
-    while (file && (got = gzread(file, &buffer[0], static_cast<unsigned int>(buffer.size()))) > 0)
-    {
-    }
-    const bool ok = file && got == 0 && gzclose(file) == Z_OK;
-    if (!ok)
-    {
-      throw UsageError("cannot read " + path + ": the compressed file is truncated or corrupt");
-    }
-  }
   auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
   if (!io)
   {
     throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
   }
   io->SetFileName(path);
-  io->ReadImageInformation();
+  try
+  {
+    io->ReadImageInformation();
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    throw UsageError("cannot read an image from " + path + ": " + e.GetDescription());
+  }
   if (components)
   {
     *components = io->GetNumberOfComponents();

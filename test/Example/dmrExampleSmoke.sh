@@ -385,6 +385,9 @@ bad-truncated-image)
   head -c 3000 "$DATA/fixed.nii.gz" >"$W/truncated.nii.gz"
   expect_bad_input truncated-fixed --fixed "$W/truncated.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
     --iterations 2
+  # found while ITK reads the file (the check runs beside the read): also for the mask
+  expect_bad_input truncated-mask --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
+    --iterations 2 --fixed-mask "$W/truncated.nii.gz"
   ;;
 bad-empty-directory)
   mkdir -p "$W/empty-dicom-dir"
