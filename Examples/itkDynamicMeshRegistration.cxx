@@ -54,6 +54,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <fstream>
+#include <future>
 #include <iomanip>
 #include <iostream>
 #include <map>
@@ -403,12 +404,43 @@ Run(const Options & opt)
   using MethodType = itk::FEMRegistrationMethod<ImageType, ImageType>;
   using MeshType = typename MethodType::MeshType;
   const auto tRead = std::chrono::steady_clock::now();
+  using MaskType = typename MethodType::MaskImageType;
+  using FieldType = typename MethodType::DisplacementFieldType;
+
+  // The input files are read side by side, each on its own thread (decompressing a .gz file is single-threaded and
+  // takes seconds for a CT); their results, errors included, are taken below in the order of the checks.
+  auto fixedRead =
+    std::async(std::launch::async, [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed); });
+  auto movingRead =
+    std::async(std::launch::async, [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving); });
+  std::future<typename MaskType::Pointer> maskRead;
+  if (!opt.fixedMask.empty())
+  {
+    maskRead = std::async(std::launch::async, [&] {
+      if (ImageDimensionOf(opt.fixedMask) != D)
+      {
+        throw UsageError("--fixed-mask is not a " + std::to_string(D) + "D image: " + opt.fixedMask);
+      }
+      return dmrtools::ReadImageOrDicomSeries<MaskType>(opt.fixedMask);
+    });
+  }
+  std::future<typename FieldType::Pointer> truthRead;
+  if (!opt.truthDisplacement.empty())
+  {
+    truthRead = std::async(std::launch::async, [&] {
+      if (ImageDimensionOf(opt.truthDisplacement) != D)
+      {
+        throw UsageError("--truth-displacement is not a " + std::to_string(D) + "D field: " + opt.truthDisplacement);
+      }
+      return dmrtools::ReadImageOrDicomSeries<FieldType>(opt.truthDisplacement);
+    });
+  }
 
   typename ImageType::Pointer fixed, moving;
   try
   {
-    fixed = dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed);
-    moving = dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving);
+    fixed = fixedRead.get();
+    moving = movingRead.get();
   }
   catch (const itk::ExceptionObject & e)
   {
@@ -447,17 +479,12 @@ Run(const Options & opt)
     moving =
       ResampleOnto(moving.GetPointer(), fixed.GetPointer(), false, itk::dmr::IntensityRange(moving.GetPointer()).first);
   }
-  using MaskType = typename MethodType::MaskImageType;
   typename MaskType::Pointer mask;
-  if (!opt.fixedMask.empty())
+  if (maskRead.valid())
   {
-    if (ImageDimensionOf(opt.fixedMask) != D)
-    {
-      throw UsageError("--fixed-mask is not a " + std::to_string(D) + "D image: " + opt.fixedMask);
-    }
     try
     {
-      mask = dmrtools::ReadImageOrDicomSeries<MaskType>(opt.fixedMask);
+      mask = maskRead.get();
     }
     catch (const itk::ExceptionObject & e)
     {
@@ -527,17 +554,12 @@ Run(const Options & opt)
       }
     }
   }
-  using FieldType = typename MethodType::DisplacementFieldType;
   typename FieldType::Pointer truth;
-  if (!opt.truthDisplacement.empty())
+  if (truthRead.valid())
   {
-    if (ImageDimensionOf(opt.truthDisplacement) != D)
-    {
-      throw UsageError("--truth-displacement is not a " + std::to_string(D) + "D field: " + opt.truthDisplacement);
-    }
     try
     {
-      truth = dmrtools::ReadImageOrDicomSeries<FieldType>(opt.truthDisplacement);
+      truth = truthRead.get();
     }
     catch (const itk::ExceptionObject & e)
     {
