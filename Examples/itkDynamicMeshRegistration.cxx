@@ -408,15 +408,20 @@ Run(const Options & opt)
   using FieldType = typename MethodType::DisplacementFieldType;
 
   // The input files are read side by side, each on its own thread (decompressing a .gz file is single-threaded and
-  // takes seconds for a CT); their results, errors included, are taken below in the order of the checks.
+  // takes seconds for a CT); their results, errors included, are taken below in the order of the checks. DICOM
+  // directories are read on this thread when their result is taken (GDCM's global state is not known to be safe to
+  // share between threads).
+  auto launch = [](const std::string & path) {
+    return itksys::SystemTools::FileIsDirectory(path) ? std::launch::deferred : std::launch::async;
+  };
   auto fixedRead =
-    std::async(std::launch::async, [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed); });
+    std::async(launch(opt.fixed), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed); });
   auto movingRead =
-    std::async(std::launch::async, [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving); });
+    std::async(launch(opt.moving), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving); });
   std::future<typename MaskType::Pointer> maskRead;
   if (!opt.fixedMask.empty())
   {
-    maskRead = std::async(std::launch::async, [&] {
+    maskRead = std::async(launch(opt.fixedMask), [&] {
       if (ImageDimensionOf(opt.fixedMask) != D)
       {
         throw UsageError("--fixed-mask is not a " + std::to_string(D) + "D image: " + opt.fixedMask);
@@ -427,7 +432,7 @@ Run(const Options & opt)
   std::future<typename FieldType::Pointer> truthRead;
   if (!opt.truthDisplacement.empty())
   {
-    truthRead = std::async(std::launch::async, [&] {
+    truthRead = std::async(launch(opt.truthDisplacement), [&] {
       if (ImageDimensionOf(opt.truthDisplacement) != D)
       {
         throw UsageError("--truth-displacement is not a " + std::to_string(D) + "D field: " + opt.truthDisplacement);
