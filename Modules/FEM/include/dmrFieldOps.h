@@ -52,75 +52,17 @@ ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * ou
   });
 }
 
-/** max over pixels p of value(p), on the threader's work units when one is given (64 chunks; a maximum does not
- * depend on the order); 0 for no pixel. */
-template <typename TValue>
-double
-ParallelMaximum(MultiThreaderBase * threader, size_t numberOfPixels, TValue && value)
-{
-  const size_t        nChunks = 64;
-  const size_t        chunk = (numberOfPixels + nChunks - 1) / nChunks;
-  std::vector<double> partial(nChunks, 0.0);
-  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
-    const size_t end = std::min(numberOfPixels, (c + 1) * chunk);
-    double       m = 0.0;
-    for (size_t p = c * chunk; p < end; ++p)
-    {
-      m = std::max(m, value(p));
-    }
-    partial[c] = m;
-  });
-  return *std::max_element(partial.begin(), partial.end());
-}
-
-/** Largest displacement in pixel units (max over pixels and axes of |v_k| / spacing_k). */
-template <unsigned int D>
-double
-MaximumDisplacementInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
-{
-  return ParallelMaximum(threader, grid.numberOfPixels, [&](size_t p) {
-    double m = 0.0;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      m = std::max(m, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
-    }
-    return m;
-  });
-}
-
-/** Largest difference of v between neighbouring pixels, in pixel units (max over pixels, axes k and components r
- * of |v_r(p + e_k) - v_r(p)| / spacing_r): a discrete bound on the displacement gradient. */
-template <unsigned int D>
-double
-MaximumNeighbourDifferenceInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
-{
-  return ParallelMaximum(threader, grid.numberOfPixels, [&](size_t p) {
-    const auto idx = grid.Index(p);
-    double     m = 0.0;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
-      {
-        continue;
-      }
-      const size_t q = p + grid.stride[k];
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        m = std::max(m, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
-      }
-    }
-    return m;
-  });
-}
-
-/** The two bounds of ExponentialField in one pass: MaximumDisplacementInPixels (displacement) and
- * MaximumNeighbourDifferenceInPixels (neighbourDifference), the same values as the two functions give. */
+/** The two bounds of ExponentialField, in pixel units: the largest displacement (max over pixels and axes of
+ * |v_k| / spacing_k) and the largest difference of v between neighbouring pixels (max over pixels, axes k and
+ * components r of |v_r(p + e_k) - v_r(p)| / spacing_r), a discrete bound on the displacement gradient. */
 struct FieldBounds
 {
   double displacement{ 0.0 };
   double neighbourDifference{ 0.0 };
 };
 
+/** FieldBounds of v in one pass, on the threader's work units when one is given (64 chunks; a maximum does not
+ * depend on the order); 0 for no pixel. */
 template <unsigned int D>
 FieldBounds
 FieldBoundsInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
