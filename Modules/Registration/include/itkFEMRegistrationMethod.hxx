@@ -245,8 +245,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     forceIsCurrent = false;
     record.mssd = m_DensityFilter->GetMSSD() * dV;
     record.ssd = m_DensityFilter->GetSSD() * dV;
-    m_Timing.force += seconds(t0, Clock::now());
-    m_Timing.registration += seconds(t0, Clock::now());
+    const double forceSeconds = seconds(t0, Clock::now());
+    m_Timing.force += forceSeconds;
+    m_Timing.registration += forceSeconds;
 
     // 2. dynamic mesh
     if (m_MeshMode == MeshModeEnum::Dynamic)
@@ -781,8 +782,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     const double alpha =
       m_DensityFilter->ComputeAlpha(statistics.sumSquaredForce / static_cast<double>(statistics.inside));
     dmr::ThrowOnError(context.AddToDensity(alpha), "density");
-    m_Timing.force += seconds(t0, Clock::now());
-    m_Timing.registration += seconds(t0, Clock::now());
+    const double forceSeconds = seconds(t0, Clock::now());
+    m_Timing.force += forceSeconds;
+    m_Timing.registration += forceSeconds;
 
     // 2. dynamic mesh: the swap optimisation reads the device density and keeps the labels on the device; the dual
     // mesh is built on the CPU from their small summary (counts, sums, adjacency)
