@@ -119,6 +119,28 @@ TEST(DiscreteCVTFilter, BadInputThrows)
   }
 }
 
+TEST(DiscreteCVTFilter, LabelPixelTypeMustHoldEveryCell)
+{
+  // unsigned char labels (a type the ITK Python wrapping offers) hold 256 cells: 0 .. 255
+  using ByteLabelsFilterType = itk::DiscreteCVTFilter<ImageType, itk::Image<unsigned char, 2>>;
+  auto density = MakeDensity();
+  {
+    auto filter = ByteLabelsFilterType::New();
+    filter->SetInput(density);
+    filter->SetNumberOfCells(257);
+    EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+  auto filter = ByteLabelsFilterType::New();
+  filter->SetInput(density);
+  filter->SetNumberOfCells(256);
+  filter->SetMaximumNumberOfSweeps(2);
+  filter->Update();
+  const auto *         output = filter->GetOutput();
+  const size_t         n = output->GetLargestPossibleRegion().GetNumberOfPixels();
+  std::vector<int32_t> labels(output->GetBufferPointer(), output->GetBufferPointer() + n);
+  EXPECT_TRUE(itk::dmr::test::LabelsAreCompact(labels, 256));
+}
+
 TEST(DiscreteCVTFilter, OutputIsConnectedAndEnergyIsTheLabelsEnergy)
 {
   auto density = MakeDensity();

@@ -66,6 +66,13 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
     itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
                                         << ")");
   }
+  // the labels 0 .. NumberOfCells - 1 must fit the output's pixel type (e.g. at most 256 cells for unsigned char)
+  if (static_cast<long double>(m_NumberOfCells - 1) > static_cast<long double>(NumericTraits<LabelType>::max()))
+  {
+    itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") needs labels up to " << m_NumberOfCells - 1
+                                        << ", more than the label pixel type holds ("
+                                        << static_cast<long double>(NumericTraits<LabelType>::max()) << ")");
+  }
   const LabelImageType * initial = this->GetInitialLabels();
   if (initial &&
       initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
