@@ -124,6 +124,50 @@ TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
             t.total);
 }
 
+TEST(FEMRegistrationMethod, DoubleImagesGiveTheFieldOfFloatImages)
+{
+  // the ITK Python packages wrap double images too (wrapping/): the same pair as doubles, 20 iterations on the CPU
+  using DoubleImageType = itk::Image<double, 2>;
+  using DoubleMethodType = itk::FEMRegistrationMethod<DoubleImageType, DoubleImageType>;
+  auto toDouble = [](const ImageType * image) {
+    auto out = DoubleImageType::New();
+    out->SetRegions(image->GetLargestPossibleRegion());
+    out->CopyInformation(image);
+    out->Allocate();
+    const size_t n = image->GetLargestPossibleRegion().GetNumberOfPixels();
+    std::copy(image->GetBufferPointer(), image->GetBufferPointer() + n, out->GetBufferPointer());
+    return out;
+  };
+  auto single = SmallRegistration(MeshMode::Dynamic, 20);
+  single->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  single->Update();
+  auto twice = DoubleMethodType::New();
+  twice->SetFixedImage(toDouble(single->GetFixedImage()));
+  twice->SetMovingImage(toDouble(single->GetMovingImage()));
+  twice->SetNumberOfNodes(30);
+  twice->SetNumberOfIterations(20);
+  twice->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  twice->Update();
+  EXPECT_LT(twice->GetFinalSSD(), 0.8 * twice->GetHistory().front().ssd);
+  EXPECT_NEAR(twice->GetFinalSSD(), single->GetFinalSSD(), 1e-6 * single->GetFinalSSD());
+  const auto * a = single->GetDisplacementField();
+  const auto * b = twice->GetDisplacementField();
+  ASSERT_EQ(a->GetLargestPossibleRegion(), b->GetLargestPossibleRegion());
+  const size_t n = a->GetLargestPossibleRegion().GetNumberOfPixels();
+  double       largest = 0.0, difference = 0.0;
+  for (size_t i = 0; i < n; ++i)
+  {
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      largest = std::max(largest, std::abs(static_cast<double>(a->GetBufferPointer()[i][k])));
+      difference =
+        std::max(difference, std::abs(static_cast<double>(a->GetBufferPointer()[i][k] - b->GetBufferPointer()[i][k])));
+    }
+  }
+  EXPECT_GT(largest, 1.0); // the blobs are 4 px apart
+  EXPECT_LT(difference, 1e-4);
+}
+
 TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)
 {
   auto method = SmallRegistration(MeshMode::Dynamic, 30);
