@@ -22,6 +22,7 @@
 #include "dmrObjectChecks.h"
 #include "gtest/gtest.h"
 #include <cmath>
+#include <limits>
 
 namespace
 {
@@ -381,6 +382,34 @@ TEST(FEMRegistrationMethod, BadInputThrows)
   auto missingMoving = MethodType::New();
   missingMoving->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
   EXPECT_THROW(missingMoving->Update(), itk::ExceptionObject);
+
+  // a NaN or an infinite intensity: an error naming the image and the pixel, on either back-end, before any work
+  for (const float bad : { std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity() })
+  {
+    for (const bool inFixed : { true, false })
+    {
+      auto image = Blob(32, 32, 16, 16, 8, 8);
+      image->SetPixel({ { 7, 5 } }, bad);
+      auto nonFinite = MethodType::New();
+      nonFinite->SetFixedImage(inFixed ? image : Blob(32, 32, 16, 16, 8, 8));
+      nonFinite->SetMovingImage(inFixed ? Blob(32, 32, 17, 16, 8, 8) : image);
+      nonFinite->SetNumberOfNodes(10);
+      nonFinite->SetNumberOfIterations(2);
+      try
+      {
+        nonFinite->Update();
+        ADD_FAILURE() << "a non-finite intensity was accepted";
+      }
+      catch (const itk::ExceptionObject & e)
+      {
+        const std::string message = e.GetDescription();
+        EXPECT_NE(message.find(std::string("the ") + (inFixed ? "fixed" : "moving") + " image has a non-finite"),
+                  std::string::npos)
+          << message;
+        EXPECT_NE(message.find("[7, 5]"), std::string::npos) << message;
+      }
+    }
+  }
 }
 
 TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)

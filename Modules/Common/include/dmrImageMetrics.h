@@ -22,6 +22,9 @@
 #include "itkImageRegionConstIterator.h"
 #include "itkMacro.h"
 #include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <type_traits>
 #include <utility>
 
 namespace itk
@@ -55,6 +58,28 @@ IntensityRange(const TImage * image)
     hi = std::max(hi, v);
   }
   return { lo, hi };
+}
+
+/** Buffer offset of the first pixel whose value is not a finite number (NaN or infinite), -1 when there is none.
+ * Integer images have none. */
+template <typename TImage>
+int64_t
+FirstNonFinitePixel(const TImage * image)
+{
+  using PixelType = typename TImage::PixelType;
+  if constexpr (std::is_floating_point_v<PixelType>)
+  {
+    const auto * buffer = image->GetBufferPointer();
+    const auto   n = static_cast<int64_t>(image->GetBufferedRegion().GetNumberOfPixels());
+    for (int64_t p = 0; p < n; ++p)
+    {
+      if (!std::isfinite(buffer[p]))
+      {
+        return p;
+      }
+    }
+  }
+  return -1;
 }
 
 /** Dice overlap of the regions {a > threshold} and {b > threshold} of two images of the same size. */
