@@ -67,6 +67,9 @@ namespace
 {
 using dmrtools::UsageError;
 
+/** Without --nodes, an image gets at most one mesh node per this many pixels (voxels). */
+constexpr long DefaultPixelsPerNode = 8;
+
 struct Options
 {
   std::string fixed, moving, outputDir, report, mesh{ "dynamic" }, backend{ "auto" };
@@ -95,7 +98,7 @@ const char * const Usage =
   "  FEM deformable registration with a dynamic mesh (Cai, Guo, Zhong, Mao 2015).\n"
   "  F, M: any ITK-readable image (NIfTI .nii/.nii.gz, .mha, ...) or a DICOM series directory; 2D or 3D.\n"
   "options:\n"
-  "  --nodes N              mesh nodes (default 100 in 2D, 3000 in 3D)\n"
+  "  --nodes N              mesh nodes (default 100 in 2D, 3000 in 3D; on small images at most one per 8 pixels)\n"
   "  --iterations K         registration iterations (default 100)\n"
   "  --levels L             pyramid levels summed in the MSSD (default 3)\n"
   "  --mesh MODE            dynamic (default) | regular | a mesh file (e.g. .vtk) used as a static mesh\n"
@@ -353,7 +356,8 @@ JsonEscape(const std::string & s)
   return out;
 }
 
-/** An ITK exception's description without its "ITK ERROR: " prefix (messages are meant for one line). */
+/** An ITK exception's description without its "ITK ERROR: " prefix and without the object's address in
+ * "Class(0x55d0c0ffee00): " (messages are meant for one line, for a user). */
 std::string
 WithoutItkPrefix(std::string text)
 {
@@ -362,6 +366,12 @@ WithoutItkPrefix(std::string text)
   if (at != std::string::npos)
   {
     text.erase(at, prefix.size());
+    const auto open = text.find("(0x", at);
+    const auto close = open == std::string::npos ? open : text.find("): ", open);
+    if (close != std::string::npos && text.find(' ', at) > open)
+    {
+      text.erase(open, close + 1 - open);
+    }
   }
   return text;
 }
@@ -511,16 +521,28 @@ Run(const Options & opt)
       throw UsageError("--fixed-mask has no voxel inside the fixed image: " + opt.fixedMask);
     }
   }
-  const long nodes = opt.nodesGiven ? opt.nodes : (D == 2 ? 100 : 3000);
+  // Default: the paper's node counts (100 in 2D, 3000 in 3D), at most one node per DefaultPixelsPerNode pixels on a
+  // small image (a 20 x 20 x 3 volume gets 150 nodes instead of an error), at least 4.
   const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
+  const long nodes =
+    opt.nodesGiven ? opt.nodes : std::max(4L, std::min<long>(D == 2 ? 100 : 3000, pixels / DefaultPixelsPerNode));
   if (nodes < 4 || nodes > pixels)
   {
     throw UsageError("--nodes must be between 4 and the number of pixels (" + std::to_string(pixels) + "), got " +
-                     std::to_string(opt.nodes));
+                     std::to_string(nodes));
   }
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
+    const auto nonFinite = itk::dmr::FirstNonFinitePixel(named.second);
+    if (nonFinite >= 0)
+    {
+      std::ostringstream where;
+      where << named.second->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
+      throw UsageError("the " + named.first + " image has a non-finite intensity (" +
+                       std::to_string(named.second->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str() +
+                       ": replace NaN and infinite values first");
+    }
     const auto range = itk::dmr::IntensityRange(named.second);
     if (!(range.second > range.first))
     {
@@ -689,7 +711,7 @@ Run(const Options & opt)
   }
   catch (const itk::ExceptionObject & e)
   {
-    throw std::runtime_error(std::string("registration failed: ") + e.GetDescription());
+    throw std::runtime_error("registration failed: " + WithoutItkPrefix(e.GetDescription()));
   }
   const auto & history = method->GetHistory();
   size_t       deviceSolves = 0, cgProducts = 0;

@@ -25,6 +25,8 @@
 //   dmrExampleCheck make-3d-mask OUT       writes a mask of the inner part of that image on a coarser grid (spacing 2)
 //   dmrExampleCheck make-constant OUT      writes a 32x32 float image that is 7 everywhere
 //   dmrExampleCheck make-2d OUT            writes a 32x32 float image with a gradient and a bright square
+//   dmrExampleCheck make-2d-byte OUT [SHIFT]  the same as unsigned char (e.g. a .png), the square moved by SHIFT
+//   dmrExampleCheck make-nonfinite OUT     the make-2d image with one pixel NaN (a format that keeps it: .mha)
 #include "itkImage.h"
 #include "itkVectorImage.h"
 #include "itkImageFileReader.h"
@@ -248,11 +250,52 @@ Make2D(const std::string & path, bool constant)
 }
 
 int
+Make2DByte(const std::string & path, int shift)
+{
+  using ImageType = itk::Image<unsigned char, 2>;
+  auto                image = ImageType::New();
+  ImageType::SizeType size{ { 32, 32 } };
+  image->SetRegions(ImageType::RegionType(size));
+  image->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    const bool   square = idx[0] >= 8 + shift && idx[0] < 20 + shift && idx[1] >= 10 && idx[1] < 24;
+    it.Set(static_cast<unsigned char>(2 * idx[1] + (square ? 180 : 0)));
+  }
+  Write(image.GetPointer(), path);
+  return FileDimension(path) == 2 ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+int
+MakeNonFinite(const std::string & path)
+{
+  using ImageType = itk::Image<float, 2>;
+  auto                image = ImageType::New();
+  ImageType::SizeType size{ { 32, 32 } };
+  image->SetRegions(ImageType::RegionType(size));
+  image->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    const bool   square = idx[0] >= 8 && idx[0] < 20 && idx[1] >= 10 && idx[1] < 24;
+    it.Set(static_cast<float>(0.01 * idx[1] + (square ? 1.0 : 0.0)));
+  }
+  image->SetPixel({ { 5, 3 } }, std::numeric_limits<float>::quiet_NaN());
+  Write(image.GetPointer(), path);
+  // the format must keep the NaN, or the check is void
+  auto reader = itk::ImageFileReader<ImageType>::New();
+  reader->SetFileName(path);
+  reader->Update();
+  return std::isnan(reader->GetOutput()->GetPixel({ { 5, 3 } })) ? EXIT_SUCCESS : EXIT_FAILURE;
+}
+
+int
 Usage()
 {
   std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | "
                "make-3d-mask OUT | "
-               "make-2d OUT | "
+               "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
                "make-constant OUT\n";
   return 2;
 }
@@ -283,6 +326,14 @@ main(int argc, char * argv[])
     if (mode == "make-2d" && argc == 3)
     {
       return Make2D(argv[2], false);
+    }
+    if (mode == "make-2d-byte" && (argc == 3 || argc == 4))
+    {
+      return Make2DByte(argv[2], argc == 4 ? std::atoi(argv[3]) : 0);
+    }
+    if (mode == "make-nonfinite" && argc == 3)
+    {
+      return MakeNonFinite(argv[2]);
     }
     if (argc != 4)
     {

@@ -265,6 +265,32 @@ run-fidelity)
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 static 30
   ;;
+run-png)
+  # 2D PNG inputs (unsigned char): the tools read PNG, JPEG, TIFF, BMP, NRRD, ... besides NIfTI and MetaImage
+  check "make a PNG fixed image" "$CHECK" make-2d-byte "$W/fixed.png"
+  check "make a PNG moving image (square 2 pixels further along x)" "$CHECK" make-2d-byte "$W/moving.png" 2
+  out="$W/out"
+  run_reg --fixed "$W/fixed.png" --moving "$W/moving.png" --output-dir "$out" --nodes 12 --iterations 10 --threads 2
+  cat "$W/stdout" "$W/stderr"
+  check "registration of PNG images exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 10 dynamic 12 2 "$W/fixed.png"
+  ssd0=$(json_number "$out/report.json" ssd_initial)
+  ssd1=$(json_number "$out/report.json" ssd_final)
+  check "SSD falls ($ssd0 -> $ssd1)" awk_true "${ssd1:-1e300} < ${ssd0:-0}"
+  ;;
+run-3d-default-nodes)
+  # without --nodes a small volume gets one node per 8 voxels instead of the 3D default 3000 (16 x 12 x 10 = 1920
+  # voxels: 240 nodes)
+  check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
+  check "make a 3D moving image" "$CHECK" make-3d "$W/moving3d.nii.gz" 1
+  out="$W/out"
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$out" --iterations 2 --threads 2
+  cat "$W/stdout" "$W/stderr"
+  check "registration without --nodes exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 2 dynamic 240 3 "$W/fixed3d.nii.gz"
+  ;;
 run-3d)
   # a 3D pair with a mask on a coarser grid (resampled onto the fixed grid) and two landmark pairs
   check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
@@ -334,6 +360,15 @@ bad-nodes-too-few)
 bad-nodes-too-many)
   # 512 x 512 = 262144 pixels
   expect_bad_input nodes-262145 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 262145 --iterations 2
+  ;;
+bad-non-finite)
+  check "make an image with a NaN pixel" "$CHECK" make-nonfinite "$W/nan.mha"
+  check "make a 32x32 finite partner" "$CHECK" make-2d "$W/image2d.nii.gz"
+  expect_bad_input nan-fixed --fixed "$W/nan.mha" --moving "$W/image2d.nii.gz" --nodes 10 --iterations 2
+  expect_bad_input nan-moving --fixed "$W/image2d.nii.gz" --moving "$W/nan.mha" --nodes 10 --iterations 2
+  run_reg --fixed "$W/nan.mha" --moving "$W/image2d.nii.gz" --output-dir "$W/out-nan" --nodes 10 --iterations 2
+  check "the message names the image and the voxel ($(cat "$W/stderr"))" \
+    grep -q "the fixed image has a non-finite intensity (nan) at voxel \[5, 3\]" "$W/stderr"
   ;;
 bad-constant-image)
   check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"
