@@ -3,7 +3,8 @@
 set -euo pipefail
 packages=(cmake g++ make ccache pkg-config
   libinsighttoolkit5-dev libvtk9-dev libcgal-dev libtet1.5-dev
-  libgtest-dev libbenchmark-dev libgdcm-tools zlib1g-dev clang-format)
+  libgtest-dev libbenchmark-dev libgdcm-tools zlib1g-dev clang-format
+  libpng-dev libjpeg-dev libtiff-dev) # the system libraries behind the tools' PNG, JPEG and TIFF readers
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
