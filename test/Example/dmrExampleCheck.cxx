@@ -231,19 +231,33 @@ Make3DMask(const std::string & path)
   return EXIT_SUCCESS;
 }
 
-int
-Make2D(const std::string & path, bool constant)
+/** 32x32 image: a gradient along y (gradient per row) plus a bright square of value `square` (columns 8..19 moved by
+ * shift along x, rows 10..23). */
+template <typename TPixel>
+typename itk::Image<TPixel, 2>::Pointer
+GradientAndSquare(int shift, double gradient, double square)
 {
-  using ImageType = itk::Image<float, 2>;
-  auto                image = ImageType::New();
-  ImageType::SizeType size{ { 32, 32 } };
-  image->SetRegions(ImageType::RegionType(size));
+  using ImageType = itk::Image<TPixel, 2>;
+  auto                         image = ImageType::New();
+  typename ImageType::SizeType size{ { 32, 32 } };
+  image->SetRegions(typename ImageType::RegionType(size));
   image->Allocate();
   for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
   {
     const auto & idx = it.GetIndex();
-    const bool   square = idx[0] >= 8 && idx[0] < 20 && idx[1] >= 10 && idx[1] < 24;
-    it.Set(constant ? 7.0f : static_cast<float>(0.01 * idx[1] + (square ? 1.0 : 0.0)));
+    const bool   inside = idx[0] >= 8 + shift && idx[0] < 20 + shift && idx[1] >= 10 && idx[1] < 24;
+    it.Set(static_cast<TPixel>(gradient * idx[1] + (inside ? square : 0.0)));
+  }
+  return image;
+}
+
+int
+Make2D(const std::string & path, bool constant)
+{
+  auto image = GradientAndSquare<float>(0, 0.01, 1.0);
+  if (constant)
+  {
+    image->FillBuffer(7.0f);
   }
   Write(image.GetPointer(), path);
   return FileDimension(path) == 2 ? EXIT_SUCCESS : EXIT_FAILURE;
@@ -252,18 +266,7 @@ Make2D(const std::string & path, bool constant)
 int
 Make2DByte(const std::string & path, int shift)
 {
-  using ImageType = itk::Image<unsigned char, 2>;
-  auto                image = ImageType::New();
-  ImageType::SizeType size{ { 32, 32 } };
-  image->SetRegions(ImageType::RegionType(size));
-  image->Allocate();
-  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
-  {
-    const auto & idx = it.GetIndex();
-    const bool   square = idx[0] >= 8 + shift && idx[0] < 20 + shift && idx[1] >= 10 && idx[1] < 24;
-    it.Set(static_cast<unsigned char>(2 * idx[1] + (square ? 180 : 0)));
-  }
-  Write(image.GetPointer(), path);
+  Write(GradientAndSquare<unsigned char>(shift, 2.0, 180.0).GetPointer(), path);
   return FileDimension(path) == 2 ? EXIT_SUCCESS : EXIT_FAILURE;
 }
 
@@ -271,16 +274,7 @@ int
 MakeNonFinite(const std::string & path)
 {
   using ImageType = itk::Image<float, 2>;
-  auto                image = ImageType::New();
-  ImageType::SizeType size{ { 32, 32 } };
-  image->SetRegions(ImageType::RegionType(size));
-  image->Allocate();
-  for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
-  {
-    const auto & idx = it.GetIndex();
-    const bool   square = idx[0] >= 8 && idx[0] < 20 && idx[1] >= 10 && idx[1] < 24;
-    it.Set(static_cast<float>(0.01 * idx[1] + (square ? 1.0 : 0.0)));
-  }
+  auto image = GradientAndSquare<float>(0, 0.01, 1.0);
   image->SetPixel({ { 5, 3 } }, std::numeric_limits<float>::quiet_NaN());
   Write(image.GetPointer(), path);
   // the format must keep the NaN, or the check is void
