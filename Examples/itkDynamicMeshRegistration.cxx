@@ -461,6 +461,20 @@ Run(const Options & opt)
   {
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
+  // NaN or infinite intensities, reported at the voxel of the file as read (before any window or resampling)
+  for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
+                              std::make_pair(std::string("moving"), moving.GetPointer()) })
+  {
+    const auto nonFinite = itk::dmr::FirstNonFinitePixel(named.second);
+    if (nonFinite >= 0)
+    {
+      std::ostringstream where;
+      where << named.second->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
+      throw UsageError("the " + named.first + " image has a non-finite intensity (" +
+                       std::to_string(named.second->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str() +
+                       ": replace NaN and infinite values first");
+    }
+  }
   typename ImageType::Pointer movingInput = moving; // as read: warped.nii.gz samples it (original intensities)
   if (opt.window)
   {
@@ -522,7 +536,7 @@ Run(const Options & opt)
     }
   }
   // Default: the paper's node counts (100 in 2D, 3000 in 3D), at most one node per DefaultPixelsPerNode pixels on a
-  // small image (a 20 x 20 x 3 volume gets 150 nodes instead of an error), at least 4.
+  // small image (a 16 x 12 x 10 volume gets 240 nodes instead of an error), at least 4.
   const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
   const long nodes =
     opt.nodesGiven ? opt.nodes : std::max(4L, std::min<long>(D == 2 ? 100 : 3000, pixels / DefaultPixelsPerNode));
@@ -534,15 +548,6 @@ Run(const Options & opt)
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
-    const auto nonFinite = itk::dmr::FirstNonFinitePixel(named.second);
-    if (nonFinite >= 0)
-    {
-      std::ostringstream where;
-      where << named.second->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
-      throw UsageError("the " + named.first + " image has a non-finite intensity (" +
-                       std::to_string(named.second->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str() +
-                       ": replace NaN and infinite values first");
-    }
     const auto range = itk::dmr::IntensityRange(named.second);
     if (!(range.second > range.first))
     {
