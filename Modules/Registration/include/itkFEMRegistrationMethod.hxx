@@ -185,20 +185,16 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
   const FixedImageType *  fixed = this->GetFixedImage();
   const MovingImageType * moving = this->GetMovingImage();
-  const auto              fixedNonFinite = dmr::FirstNonFinitePixel(fixed);
-  if (fixedNonFinite >= 0)
-  {
-    itkExceptionMacro("the fixed image has a non-finite intensity ("
-                      << fixed->GetBufferPointer()[fixedNonFinite] << ") at index "
-                      << fixed->ComputeIndex(static_cast<OffsetValueType>(fixedNonFinite)));
-  }
-  const auto movingNonFinite = dmr::FirstNonFinitePixel(moving);
-  if (movingNonFinite >= 0)
-  {
-    itkExceptionMacro("the moving image has a non-finite intensity ("
-                      << moving->GetBufferPointer()[movingNonFinite] << ") at index "
-                      << moving->ComputeIndex(static_cast<OffsetValueType>(movingNonFinite)));
-  }
+  auto                    requireFinite = [this](const char * name, const auto * image) {
+    const auto p = dmr::FirstNonFinitePixel(image);
+    if (p >= 0)
+    {
+      itkExceptionMacro("the " << name << " image has a non-finite intensity (" << image->GetBufferPointer()[p]
+                               << ") at index " << image->ComputeIndex(static_cast<OffsetValueType>(p)));
+    }
+  };
+  requireFinite("fixed", fixed);
+  requireFinite("moving", moving);
   for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
   {
     if (!(range.second > range.first))
