@@ -60,6 +60,7 @@
 #include <map>
 #include <sstream>
 #include <string>
+#include <type_traits>
 #include <unistd.h>
 #include <sys/resource.h>
 
@@ -428,27 +429,27 @@ Run(const Options & opt)
     std::async(launch(opt.fixed), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed); });
   auto movingRead =
     std::async(launch(opt.moving), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving); });
+  // an optional input of dimension D, read on its own thread like the images
+  auto readOptional = [&launch](auto pointerTag, const std::string & path, const std::string & what) {
+    using ReadType = typename decltype(pointerTag)::ObjectType;
+    return std::async(launch(path), [&path, what] {
+      if (ImageDimensionOf(path) != D)
+      {
+        throw UsageError(what + " is not a " + std::to_string(D) + "D " +
+                         (std::is_same_v<ReadType, FieldType> ? "field: " : "image: ") + path);
+      }
+      return dmrtools::ReadImageOrDicomSeries<ReadType>(path);
+    });
+  };
   std::future<typename MaskType::Pointer> maskRead;
   if (!opt.fixedMask.empty())
   {
-    maskRead = std::async(launch(opt.fixedMask), [&] {
-      if (ImageDimensionOf(opt.fixedMask) != D)
-      {
-        throw UsageError("--fixed-mask is not a " + std::to_string(D) + "D image: " + opt.fixedMask);
-      }
-      return dmrtools::ReadImageOrDicomSeries<MaskType>(opt.fixedMask);
-    });
+    maskRead = readOptional(typename MaskType::Pointer(), opt.fixedMask, "--fixed-mask");
   }
   std::future<typename FieldType::Pointer> truthRead;
   if (!opt.truthDisplacement.empty())
   {
-    truthRead = std::async(launch(opt.truthDisplacement), [&] {
-      if (ImageDimensionOf(opt.truthDisplacement) != D)
-      {
-        throw UsageError("--truth-displacement is not a " + std::to_string(D) + "D field: " + opt.truthDisplacement);
-      }
-      return dmrtools::ReadImageOrDicomSeries<FieldType>(opt.truthDisplacement);
-    });
+    truthRead = readOptional(typename FieldType::Pointer(), opt.truthDisplacement, "--truth-displacement");
   }
 
   typename ImageType::Pointer fixed, moving;
