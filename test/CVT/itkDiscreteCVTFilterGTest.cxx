@@ -16,6 +16,7 @@
  *
  *=========================================================================*/
 #include "itkDiscreteCVTFilter.h"
+#include "itkCastImageFilter.h"
 #include "dmrCVTBackend.h"
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
@@ -116,6 +117,42 @@ TEST(DiscreteCVTFilter, BadInputThrows)
     wrong->Allocate(true);
     filter->SetInitialLabels(wrong);
     EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+}
+
+// An input that is the output of a filter not yet run has no size until the pipeline's information pass reaches it.
+TEST(DiscreteCVTFilter, RunsDownstreamOfAFilterThatHasNotRun)
+{
+  using CastType = itk::CastImageFilter<ImageType, ImageType>;
+  const auto density = MakeDensity();
+  auto       direct = FilterType::New();
+  direct->SetInput(density);
+  direct->SetNumberOfCells(12);
+  direct->Update();
+
+  auto stage = CastType::New();
+  stage->SetInput(density);
+  auto filter = FilterType::New();
+  filter->SetInput(stage->GetOutput());
+  filter->SetNumberOfCells(12);
+  ASSERT_NO_THROW(filter->Update());
+  EXPECT_EQ(LabelsOf(filter->GetOutput()), LabelsOf(direct->GetOutput()));
+
+  // the checks on the input's size still hold once the pipeline has run
+  auto bad = FilterType::New();
+  auto badStage = CastType::New();
+  badStage->SetInput(density);
+  bad->SetInput(badStage->GetOutput());
+  bad->SetNumberOfCells(48 * 40 + 1);
+  try
+  {
+    bad->Update();
+    ADD_FAILURE() << "more cells than pixels were accepted";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("exceeds the number of pixels (1920)"), std::string::npos)
+      << e.GetDescription();
   }
 }
 

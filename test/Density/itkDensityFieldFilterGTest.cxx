@@ -17,6 +17,7 @@
  *=========================================================================*/
 #include "itkDensityFieldFilter.h"
 #include "dmrGaussianShrink.h"
+#include "itkCastImageFilter.h"
 #include "itkDiscreteGaussianImageFilter.h"
 #include "itkShrinkImageFilter.h"
 #include <array>
@@ -141,6 +142,59 @@ TEST(DensityFieldFilter, BadInputThrows)
     auto filter = FilterType::New();
     filter->SetFixedImage(image); // no moving image
     EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+  }
+}
+
+// Inputs that are outputs of filters not yet run (an ITK pipeline: reader -> ... -> DensityFieldFilter) have no size
+// until the pipeline's information pass reaches them; the checks on their sizes must wait for it.
+TEST(DensityFieldFilter, RunsDownstreamOfFiltersThatHaveNotRun)
+{
+  using CastType = itk::CastImageFilter<ImageType, ImageType>;
+  const auto size = ImageType::SizeType{ { 24, 20 } };
+  auto       fixed = itk::dmr::test::MakeImage<ImageType>(
+    size, Spacing(1, 1.5), Origin(2, -1), itk::dmr::test::RotationDirection2D<ImageType>(0.3), Blob(Origin(12, 12)));
+  auto moving = itk::dmr::test::MakeImage<ImageType>(
+    size, Spacing(1, 1.5), Origin(2, -1), itk::dmr::test::RotationDirection2D<ImageType>(0.3), Blob(Origin(14, 11)));
+  auto direct = FilterType::New();
+  direct->SetFixedImage(fixed);
+  direct->SetMovingImage(moving);
+  direct->Update();
+
+  auto fixedStage = CastType::New();
+  fixedStage->SetInput(fixed);
+  auto movingStage = CastType::New();
+  movingStage->SetInput(moving);
+  auto filter = FilterType::New();
+  filter->SetFixedImage(fixedStage->GetOutput());
+  filter->SetMovingImage(movingStage->GetOutput());
+  ASSERT_NO_THROW(filter->Update());
+  EXPECT_EQ(filter->GetOutput()->GetLargestPossibleRegion(), fixed->GetLargestPossibleRegion());
+  EXPECT_EQ(filter->GetMSSD(), direct->GetMSSD());
+  for (size_t p = 0; p < 24 * 20; ++p)
+  {
+    ASSERT_EQ(filter->GetOutput()->GetBufferPointer()[p], direct->GetOutput()->GetBufferPointer()[p]) << "pixel " << p;
+  }
+
+  // the size checks still hold once the pipeline has run: a fixed image 1 pixel high
+  auto thin = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 1 } },
+                                                   Spacing(1, 1),
+                                                   Origin(0, 0),
+                                                   itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                   Blob(Origin(10, 0)));
+  auto thinStage = CastType::New();
+  thinStage->SetInput(thin);
+  auto bad = FilterType::New();
+  bad->SetFixedImage(thinStage->GetOutput());
+  bad->SetMovingImage(thinStage->GetOutput());
+  try
+  {
+    bad->Update();
+    ADD_FAILURE() << "a fixed image of 20 x 1 pixels was accepted";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("at least 2 pixels along every axis"), std::string::npos)
+      << e.GetDescription();
   }
 }
 

@@ -16,6 +16,7 @@
  *
  *=========================================================================*/
 #include "itkFEMRegistrationMethod.h"
+#include "itkCastImageFilter.h"
 #include "itkCommand.h"
 #include "itkResampleImageFilter.h"
 #include "dmrFieldImage.h"
@@ -123,6 +124,51 @@ TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
   EXPECT_LE(t.force + t.gather + t.update + t.femSolve, t.registration);
   EXPECT_LE(t.initialTessellation + t.tessellationOptimization + t.meshConstruction + t.barycentric + t.registration,
             t.total);
+}
+
+// Fixed and moving images that are outputs of filters not yet run (reader -> ... -> registration, one Update() at the
+// end) have no size until the pipeline's information pass reaches them.
+TEST(FEMRegistrationMethod, RunsDownstreamOfFiltersThatHaveNotRun)
+{
+  using CastType = itk::CastImageFilter<ImageType, ImageType>;
+  auto direct = SmallRegistration(MeshMode::Dynamic, 10);
+  direct->Update();
+
+  auto fixedStage = CastType::New();
+  fixedStage->SetInput(Blob(64, 56, 30, 28, 16, 12));
+  auto movingStage = CastType::New();
+  movingStage->SetInput(Blob(64, 56, 34, 27, 12, 12));
+  auto method = MethodType::New();
+  method->SetFixedImage(fixedStage->GetOutput());
+  method->SetMovingImage(movingStage->GetOutput());
+  method->SetNumberOfNodes(30);
+  method->SetNumberOfIterations(10);
+  ASSERT_NO_THROW(method->Update());
+  const auto * field = method->GetDisplacementField();
+  EXPECT_EQ(field->GetLargestPossibleRegion().GetSize(), (ImageType::SizeType{ { 64, 56 } }));
+  EXPECT_EQ(method->GetFinalSSD(), direct->GetFinalSSD());
+  for (size_t p = 0; p < 64 * 56; ++p)
+  {
+    ASSERT_EQ(field->GetBufferPointer()[p], direct->GetDisplacementField()->GetBufferPointer()[p]) << "pixel " << p;
+  }
+
+  // the checks on the sizes still hold once the pipeline has run: more nodes than pixels
+  auto bad = MethodType::New();
+  auto badStage = CastType::New();
+  badStage->SetInput(Blob(8, 6, 4, 3, 2, 2));
+  bad->SetFixedImage(badStage->GetOutput());
+  bad->SetMovingImage(badStage->GetOutput());
+  bad->SetNumberOfNodes(49);
+  try
+  {
+    bad->Update();
+    ADD_FAILURE() << "more nodes than pixels were accepted";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("exceeds the number of pixels (48)"), std::string::npos)
+      << e.GetDescription();
+  }
 }
 
 TEST(FEMRegistrationMethod, DoubleImagesGiveTheFieldOfFloatImages)

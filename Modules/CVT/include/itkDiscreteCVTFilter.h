@@ -116,8 +116,13 @@ protected:
   ~DiscreteCVTFilter() override = default;
   void
   PrintSelf(std::ostream & os, Indent indent) const override;
+  /** Checks of the parameters and of which inputs are set (before the inputs' information is updated). */
   void
   VerifyPreconditions() ITKv5_CONST override;
+  /** Checks of the inputs' sizes, once the pipeline's information pass has updated them (an input may be the
+   * output of a filter that has not run yet). */
+  void
+  VerifyInputInformation() ITKv5_CONST override;
   void
   GenerateInputRequestedRegion() override;
   void

@@ -60,18 +60,25 @@ void
 DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
-  const auto numberOfPixels = this->GetInput()->GetLargestPossibleRegion().GetNumberOfPixels();
-  if (m_NumberOfCells > numberOfPixels)
-  {
-    itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
-                                        << ")");
-  }
   // the labels 0 .. NumberOfCells - 1 must fit the output's pixel type (e.g. at most 256 cells for unsigned char)
   if (static_cast<long double>(m_NumberOfCells - 1) > static_cast<long double>(NumericTraits<LabelType>::max()))
   {
     itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") needs labels up to " << m_NumberOfCells - 1
                                         << ", more than the label pixel type holds ("
                                         << static_cast<long double>(NumericTraits<LabelType>::max()) << ")");
+  }
+}
+
+template <typename TDensityImage, typename TLabelImage>
+void
+DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyInputInformation() ITKv5_CONST
+{
+  Superclass::VerifyInputInformation();
+  const auto numberOfPixels = this->GetInput()->GetLargestPossibleRegion().GetNumberOfPixels();
+  if (m_NumberOfCells > numberOfPixels)
+  {
+    itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
+                                        << ")");
   }
   const LabelImageType * initial = this->GetInitialLabels();
   if (initial &&

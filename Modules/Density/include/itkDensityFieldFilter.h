@@ -193,8 +193,10 @@ protected:
   ~DensityFieldFilter() override = default;
   void
   PrintSelf(std::ostream & os, Indent indent) const override;
+  /** Checks of the inputs' sizes, once the pipeline's information pass has updated them (an input may be the
+   * output of a filter that has not run yet). */
   void
-  VerifyPreconditions() ITKv5_CONST override;
+  VerifyInputInformation() ITKv5_CONST override;
   void
   GenerateInputRequestedRegion() override;
   void

@@ -61,9 +61,9 @@ DensityFieldFilter<TF, TM, TD, TO>::GetForceField() -> ForceFieldType *
 
 template <typename TF, typename TM, typename TD, typename TO>
 void
-DensityFieldFilter<TF, TM, TD, TO>::VerifyPreconditions() ITKv5_CONST
+DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
 {
-  Superclass::VerifyPreconditions();
+  Superclass::VerifyInputInformation();
   const FixedImageType * fixed = this->GetFixedImage();
   const auto             fixedSize = fixed->GetLargestPossibleRegion().GetSize();
   for (unsigned int k = 0; k < ImageDimension; ++k)

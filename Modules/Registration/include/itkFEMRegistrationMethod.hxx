@@ -103,6 +103,21 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
+  if (m_MeshMode == MeshModeEnum::Static && this->GetStaticMesh() == nullptr)
+  {
+    itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
+  }
+  if (m_Backend == BackendEnum::CUDA && !dmr::cuda::DeviceAvailable())
+  {
+    itkExceptionMacro("the CUDA back-end was requested but " << dmr::cuda::UnavailableReason());
+  }
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
+{
+  Superclass::VerifyInputInformation();
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
   for (unsigned int k = 0; k < ImageDimension; ++k)
@@ -116,14 +131,6 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
   if (m_MeshMode == MeshModeEnum::Dynamic && m_NumberOfNodes > pixels)
   {
     itkExceptionMacro("NumberOfNodes (" << m_NumberOfNodes << ") exceeds the number of pixels (" << pixels << ")");
-  }
-  if (m_MeshMode == MeshModeEnum::Static && this->GetStaticMesh() == nullptr)
-  {
-    itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
-  }
-  if (m_Backend == BackendEnum::CUDA && !dmr::cuda::DeviceAvailable())
-  {
-    itkExceptionMacro("the CUDA back-end was requested but " << dmr::cuda::UnavailableReason());
   }
 }
 
