@@ -31,6 +31,7 @@ set(CMAKE_LIBRARY_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/lib)
 set(CMAKE_ARCHIVE_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/lib)
 
 add_subdirectory(Modules)
+include(DMRInstall)
 if(DMR_BUILD_EXAMPLES)
   add_subdirectory(Examples)
 endif()
