@@ -187,11 +187,11 @@ Write(const TImage * image, const std::string & path)
 }
 
 int
-Make3D(const std::string & path, int shift)
+Make3D(const std::string & path, int shift, unsigned int depth = 10)
 {
   using ImageType = itk::Image<float, 3>;
   auto                image = ImageType::New();
-  ImageType::SizeType size{ { 16, 12, 10 } };
+  ImageType::SizeType size{ { 16, 12, depth } };
   image->SetRegions(ImageType::RegionType(size));
   image->Allocate();
   for (itk::ImageRegionIteratorWithIndex<ImageType> it(image, image->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
@@ -288,7 +288,7 @@ int
 Usage()
 {
   std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | "
-               "make-3d-mask OUT | "
+               "make-3d-thin OUT | make-3d-mask OUT | "
                "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
                "make-constant OUT\n";
   return 2;
@@ -308,6 +308,10 @@ main(int argc, char * argv[])
     if (mode == "make-3d" && (argc == 3 || argc == 4))
     {
       return Make3D(argv[2], argc == 4 ? std::atoi(argv[3]) : 0);
+    }
+    if (mode == "make-3d-thin" && argc == 3)
+    {
+      return Make3D(argv[2], 0, 3); // 16 x 12 x 3: fewer than the 4 voxels per axis a registration needs
     }
     if (mode == "make-3d-mask" && argc == 3)
     {

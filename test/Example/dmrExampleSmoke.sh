@@ -370,6 +370,15 @@ bad-non-finite)
   check "the message names the image and the voxel ($(cat "$W/stderr"))" \
     grep -q "the fixed image has a non-finite intensity (nan) at voxel \[5, 3\]" "$W/stderr"
   ;;
+bad-thin-image)
+  check "make a 16x12x3 fixed image" "$CHECK" make-3d-thin "$W/thin.nii.gz"
+  check "make a 16x12x10 moving image" "$CHECK" make-3d "$W/image3d.nii.gz"
+  expect_bad_input thin-fixed --fixed "$W/thin.nii.gz" --moving "$W/image3d.nii.gz" --nodes 10 --iterations 2
+  run_reg --fixed "$W/thin.nii.gz" --moving "$W/image3d.nii.gz" --output-dir "$W/out-thin" --nodes 10 --iterations 2
+  check "a usage error: exit code 2 (got $RC)" test "$RC" -eq 2
+  check "the message names the axis ($(cat "$W/stderr"))" \
+    grep -q "error: the fixed image needs at least 4 pixels along every axis; axis 2 has 3" "$W/stderr"
+  ;;
 bad-constant-image)
   check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"
   check "make a 32x32 non-constant partner" "$CHECK" make-2d "$W/image2d.nii.gz"
