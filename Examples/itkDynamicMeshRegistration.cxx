@@ -835,6 +835,9 @@ Run(const Options & opt)
              : std::string("null"))
        << ",\n"
        << "  \"gpu_memory_mb\": " << static_cast<double>(method->GetDeviceBytes()) / (1024.0 * 1024.0) << ",\n"
+       << "  \"gpu_memory_peak_mb\": " << static_cast<double>(method->GetDevicePeakBytes()) / (1024.0 * 1024.0) << ",\n"
+       << "  \"gpu_device_used_at_peak_mb\": "
+       << static_cast<double>(method->GetDeviceUsedAtPeakBytes()) / (1024.0 * 1024.0) << ",\n"
        << "  \"threads\": " << method->GetNumberOfWorkUnits() << ",\n"
        << "  \"lambda\": " << opt.lambda << ",\n"
        << "  \"mu\": " << opt.mu << ",\n"

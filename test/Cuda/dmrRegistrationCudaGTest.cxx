@@ -19,6 +19,7 @@
 // gathered nodal forces and the final displacement field of whole runs (2D and 3D, dynamic and regular meshes,
 // rotated geometry) must agree. Every test skips without a CUDA device.
 #include "itkFEMRegistrationMethod.h"
+#include "dmrCudaBackend.h"
 #include "dmrFieldImage.h"
 #include "dmrRegistrationBackend.h"
 #include "gtest/gtest.h"
@@ -196,6 +197,15 @@ RunsAgree(MeshMode     mode,
   itk::dmr::JacobianDeterminantImage(gpu->GetDisplacementField(), range, nullptr);
   EXPECT_GT(range.first, 0.0);
   EXPECT_GT(gpu->GetDeviceBytes(), 0u);
+  // the counting allocator's peak holds at least what is held at the end, and the device's whole use at that moment
+  // (with the CUDA context) more than that
+  const auto peak = gpu->GetDevicePeakBytes();
+  EXPECT_GE(peak, gpu->GetDeviceBytes());
+  EXPECT_GT(gpu->GetDeviceUsedAtPeakBytes(), peak);
+  std::cout << "device memory: held at the end " << gpu->GetDeviceBytes() << " B, peak " << peak
+            << " B, device used at the peak " << gpu->GetDeviceUsedAtPeakBytes() << " B" << std::endl;
+  // after the run only the buffers of objects still alive remain counted
+  EXPECT_LE(itk::dmr::cuda::GetMemoryStatistics().allocatedBytes, peak);
 
   // a second Update() starts afresh: the same field, and stage times of that run only (they sum to at most the total)
   gpu->Modified();

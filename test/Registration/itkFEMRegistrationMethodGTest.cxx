@@ -500,5 +500,7 @@ TEST(FEMRegistrationMethod, BackendWithoutDevice)
   autoBackend->Update();
   EXPECT_EQ(autoBackend->GetBackendUsed(), itk::DynamicMeshRegistrationEnums::Backend::CPU);
   EXPECT_EQ(autoBackend->GetDeviceBytes(), 0u);
+  EXPECT_EQ(autoBackend->GetDevicePeakBytes(), 0u);
+  EXPECT_EQ(autoBackend->GetDeviceUsedAtPeakBytes(), 0u);
   EXPECT_LT(autoBackend->GetFinalSSD(), autoBackend->GetHistory().front().ssd);
 }

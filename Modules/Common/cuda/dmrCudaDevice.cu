@@ -17,7 +17,9 @@
  *=========================================================================*/
 #include "dmrCudaBackend.h"
 
+#include "dmrCudaUtils.cuh"
 #include <cuda_runtime.h>
+#include <mutex>
 #include <sstream>
 
 namespace itk
@@ -101,6 +103,69 @@ CreateContext()
     return Status::Error(std::string("CUDA context creation failed (") + cudaGetErrorString(status) + ")");
   }
   return Status::Success();
+}
+namespace
+{
+/** The allocator's counters (DeviceBuffer reports every cudaMalloc and cudaFree here). */
+struct MemoryCounters
+{
+  std::mutex       mutex;
+  MemoryStatistics statistics;
+};
+
+MemoryCounters &
+Counters()
+{
+  static MemoryCounters counters;
+  return counters;
+}
+} // namespace
+
+void
+RecordDeviceAllocation(size_t bytes)
+{
+  MemoryCounters &            c = Counters();
+  std::lock_guard<std::mutex> lock(c.mutex);
+  c.statistics.allocatedBytes += bytes;
+  if (c.statistics.allocatedBytes > c.statistics.peakAllocatedBytes)
+  {
+    c.statistics.peakAllocatedBytes = c.statistics.allocatedBytes;
+    size_t freeBytes = 0, totalBytes = 0;
+    if (cudaMemGetInfo(&freeBytes, &totalBytes) == cudaSuccess)
+    {
+      c.statistics.deviceUsedAtPeakBytes = totalBytes - freeBytes;
+    }
+    else
+    {
+      cudaGetLastError(); // a statistic only: never a sticky error for the next launcher
+    }
+  }
+}
+
+void
+RecordDeviceFree(size_t bytes) noexcept
+{
+  MemoryCounters &            c = Counters();
+  std::lock_guard<std::mutex> lock(c.mutex);
+  c.statistics.allocatedBytes -= std::min(bytes, c.statistics.allocatedBytes);
+}
+
+MemoryStatistics
+GetMemoryStatistics()
+{
+  MemoryCounters &            c = Counters();
+  std::lock_guard<std::mutex> lock(c.mutex);
+  return c.statistics;
+}
+
+void
+ResetMemoryPeak()
+{
+  MemoryCounters &            c = Counters();
+  std::lock_guard<std::mutex> lock(c.mutex);
+  c.statistics.peakAllocatedBytes = c.statistics.allocatedBytes;
+  c.statistics.deviceUsedAtPeakBytes = 0; // sampled by the next allocation that raises the peak (no CUDA call here:
+                                          // it would create the context on this thread)
 }
 } // namespace cuda
 } // namespace dmr

@@ -43,6 +43,13 @@ public:
   }
 };
 
+/** The allocator's bookkeeping (dmrCudaDevice.cu, dmr::cuda::GetMemoryStatistics): DeviceBuffer reports every
+ * allocation and free. */
+void
+RecordDeviceAllocation(size_t bytes);
+void
+RecordDeviceFree(size_t bytes) noexcept;
+
 inline void
 Check(cudaError_t status, const char * what)
 {
@@ -141,6 +148,7 @@ public:
       Check(cudaMalloc(&p, n * sizeof(T)), "cudaMalloc");
       m_Data = static_cast<T *>(p);
       m_Size = n;
+      RecordDeviceAllocation(n * sizeof(T));
     }
   }
   /** Grows (never shrinks) to at least n elements; the contents are discarded when it grows. */
@@ -158,6 +166,7 @@ public:
     if (m_Data)
     {
       cudaFree(m_Data);
+      RecordDeviceFree(m_Size * sizeof(T));
     }
     m_Data = nullptr;
     m_Size = 0;

@@ -68,6 +68,24 @@ DynamicMeshRegistration_EXPORT std::string
  * about 0.1 s longer). Thread-safe: the registration calls it on a helper thread while the host prepares its data. */
 DynamicMeshRegistration_EXPORT Status
 CreateContext();
+
+/** Device memory of the back-end: every device buffer of the library goes through one allocator, which counts it. */
+struct MemoryStatistics
+{
+  size_t allocatedBytes{ 0 };        // held now
+  size_t peakAllocatedBytes{ 0 };    // the most held at once since the last ResetMemoryPeak()
+  size_t deviceUsedAtPeakBytes{ 0 }; // the whole device's use (total - free: the CUDA context, other processes and
+                                     // ours) when that peak was reached
+};
+
+/** The statistics of this process (all zero without CUDA). */
+DynamicMeshRegistration_EXPORT MemoryStatistics
+GetMemoryStatistics();
+
+/** Starts a new peak from what is held now (FEMRegistrationMethod calls it when a GPU run starts; two GPU runs at the
+ * same time in one process share the peak). */
+DynamicMeshRegistration_EXPORT void
+ResetMemoryPeak();
 } // namespace cuda
 } // namespace dmr
 } // namespace itk

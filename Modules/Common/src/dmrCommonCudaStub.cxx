@@ -46,6 +46,17 @@ CreateContext()
 {
   return Status::Error(UnavailableReason());
 }
+
+MemoryStatistics
+GetMemoryStatistics()
+{
+  return MemoryStatistics{};
+}
+
+void
+ResetMemoryPeak()
+{
+}
 } // namespace cuda
 } // namespace dmr
 } // namespace itk

@@ -200,6 +200,12 @@ public:
    * context's largest allocation plus the CVT optimiser's and the label summary's buffers, which are held throughout
    * the iterations. The CUDA context and the driver's own allocations are not included. */
   itkGetConstMacro(DeviceBytes, SizeValueType);
+  /** The most device memory the back-end's buffers held at one moment of the last GPU run (bytes; 0 on the CPU
+   * path), transient buffers included (every buffer goes through one counting allocator, dmr::cuda::
+   * GetMemoryStatistics), and the whole device's use at that moment (total - free: with the CUDA context and the
+   * driver's own memory, and any other process on the device). */
+  itkGetConstMacro(DevicePeakBytes, SizeValueType);
+  itkGetConstMacro(DeviceUsedAtPeakBytes, SizeValueType);
 
   /** Results. */
   itkGetConstMacro(Beta, double);
@@ -319,6 +325,8 @@ private:
   BackendEnum       m_Backend{ BackendEnum::Auto };
   BackendEnum       m_BackendUsed{ BackendEnum::CPU };
   size_t            m_DeviceBytes{ 0 };
+  size_t            m_DevicePeakBytes{ 0 };
+  size_t            m_DeviceUsedAtPeakBytes{ 0 };
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
 

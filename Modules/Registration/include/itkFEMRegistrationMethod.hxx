@@ -211,9 +211,13 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
                                                                     "density alpha would be 0)");
     }
   }
+  m_DeviceBytes = 0;
+  m_DevicePeakBytes = 0;
+  m_DeviceUsedAtPeakBytes = 0;
   if (m_Backend != BackendEnum::CPU && dmr::cuda::DeviceAvailable())
   {
     m_BackendUsed = BackendEnum::CUDA;
+    dmr::cuda::ResetMemoryPeak();
     this->GenerateDataCUDA(tStart);
     return;
   }
@@ -985,6 +989,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   // everything the back-end allocated: the registration context at its peak, and the CVT optimiser's and the label
   // summary's buffers, which it holds throughout the iterations
   m_DeviceBytes = context.AllocatedBytes() + cvt.AllocatedBytes() + summarizer.AllocatedBytes();
+  // every buffer at once at the peak, the transient ones included, and the whole device's use at that moment
+  const auto memory = dmr::cuda::GetMemoryStatistics();
+  m_DevicePeakBytes = memory.peakAllocatedBytes;
+  m_DeviceUsedAtPeakBytes = memory.deviceUsedAtPeakBytes;
   m_Timing.registration += seconds(t0, Clock::now());
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
@@ -1016,6 +1024,8 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "Backend: " << m_Backend << std::endl;
   os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
   os << indent << "DeviceBytes: " << m_DeviceBytes << std::endl;
+  os << indent << "DevicePeakBytes: " << m_DevicePeakBytes << std::endl;
+  os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "Beta: " << m_Beta << std::endl;
