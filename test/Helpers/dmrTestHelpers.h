@@ -23,10 +23,12 @@
 #include "dmrSimplexMesh.h"
 #include "itkImage.h"
 #include "itkImageRegionIteratorWithIndex.h"
+#include "itkProcessObject.h"
 #include <array>
 #include <cmath>
 #include <cstdint>
 #include <random>
+#include <string>
 #include <vector>
 
 namespace itk
@@ -35,6 +37,29 @@ namespace dmr
 {
 namespace test
 {
+/** Success when process->Update() throws an itk::ExceptionObject whose description contains every one of `texts`. */
+inline ::testing::AssertionResult
+UpdateThrowsMentioning(ProcessObject * process, std::initializer_list<std::string> texts)
+{
+  try
+  {
+    process->Update();
+  }
+  catch (const ExceptionObject & e)
+  {
+    const std::string description = e.GetDescription();
+    for (const auto & text : texts)
+    {
+      if (description.find(text) == std::string::npos)
+      {
+        return ::testing::AssertionFailure() << "the exception does not mention '" << text << "': " << description;
+      }
+    }
+    return ::testing::AssertionSuccess();
+  }
+  return ::testing::AssertionFailure() << "Update() did not throw";
+}
+
 /** Positive random density in [low, high), one value per pixel, from a fixed seed. */
 inline std::vector<float>
 RandomDensity(size_t numberOfPixels, uint32_t seed, float low = 0.2f, float high = 1.0f)
