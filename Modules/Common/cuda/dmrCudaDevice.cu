@@ -104,6 +104,7 @@ CreateContext()
   }
   return Status::Success();
 }
+
 namespace
 {
 /** The allocator's counters (DeviceBuffer reports every cudaMalloc and cudaFree here). */
