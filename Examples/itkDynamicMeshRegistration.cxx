@@ -536,16 +536,6 @@ Run(const Options & opt)
       throw UsageError("--fixed-mask has no voxel inside the fixed image: " + opt.fixedMask);
     }
   }
-  // the registration's own rule (FEMRegistrationMethod), checked here so that it is a usage error like the others
-  const auto fixedSize = fixed->GetLargestPossibleRegion().GetSize();
-  for (unsigned int k = 0; k < D; ++k)
-  {
-    if (fixedSize[k] < 4)
-    {
-      throw UsageError("the fixed image needs at least 4 pixels along every axis; axis " + std::to_string(k) + " has " +
-                       std::to_string(fixedSize[k]));
-    }
-  }
   // Default: the paper's node counts (100 in 2D, 3000 in 3D), at most one node per DefaultPixelsPerNode pixels on a
   // small image (a 16 x 12 x 10 volume gets 240 nodes instead of an error), at least 4.
   const auto pixels = static_cast<long>(fixed->GetLargestPossibleRegion().GetNumberOfPixels());
@@ -692,6 +682,17 @@ Run(const Options & opt)
     method->SetMeshMode(itk::DynamicMeshRegistrationEnums::MeshMode::Static);
     method->SetStaticMesh(mesh);
     meshMode = "static";
+  }
+
+  // the registration's own checks of its inputs and settings (e.g. at least 4 pixels along every axis of the fixed
+  // image) run before the outputs are staged: what they reject is bad input, a usage error like the others
+  try
+  {
+    method->UpdateOutputInformation();
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    throw UsageError(WithoutItkPrefix(e.GetDescription()));
   }
 
   dmrtools::Staging                                 staging(opt.outputDir);

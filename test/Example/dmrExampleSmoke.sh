@@ -377,7 +377,7 @@ bad-thin-image)
   run_reg --fixed "$W/thin.nii.gz" --moving "$W/image3d.nii.gz" --output-dir "$W/out-thin" --nodes 10 --iterations 2
   check "a usage error: exit code 2 (got $RC)" test "$RC" -eq 2
   check "the message names the axis ($(cat "$W/stderr"))" \
-    grep -q "error: the fixed image needs at least 4 pixels along every axis; axis 2 has 3" "$W/stderr"
+    grep -q "error: FEMRegistrationMethod: the fixed image needs at least 4 pixels along every axis; axis 2 has 3" "$W/stderr"
   ;;
 bad-constant-image)
   check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"
