@@ -22,6 +22,7 @@
 #include "dmrCudaBackend.h"
 #include "dmrFieldImage.h"
 #include "dmrRegistrationBackend.h"
+#include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
 #include <cmath>
 #include <cstring>
@@ -674,6 +675,72 @@ TEST(CudaRegistration, DeviceSolveRegularMeshRunMatchesCPU3D)
 {
   DMR_REQUIRE_DEVICE();
   RunsAgree<3>(MeshMode::Regular, 125, 30, 40, 0.1, nullptr, true);
+}
+
+/** A fixed image whose region does not start at 0 and a moving image on another grid (another start, size, spacing
+ * and origin): both back-ends sample the moving pyramid through the same maps, so the runs still agree. */
+template <unsigned int D>
+void
+ShiftedAndOtherGridRunsAgree(unsigned int nodes, unsigned int iterations, unsigned int n)
+{
+  const double                   cf[3] = { 0.45 * n, 0.5 * n, 0.45 * n }, rf[3] = { 0.3 * n, 0.22 * n, 0.25 * n };
+  const double                   cm[3] = { 0.55 * n, 0.5 * n, 0.5 * n }, rm[3] = { 0.24 * n, 0.25 * n, 0.2 * n };
+  auto                           fixed = Blob<D>(n, cf, rf);
+  typename ImageOf<D>::IndexType fixedStart, movingStart;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    fixedStart[k] = k == 0 ? 7 : -3 - static_cast<int>(k);
+    movingStart[k] = k == 1 ? 4 : -5;
+  }
+  itk::dmr::test::ShiftRegionStart(fixed.GetPointer(), fixedStart);
+  auto moving = Blob<D>(n + 6, cm, rm);
+  auto region = moving->GetLargestPossibleRegion();
+  region.SetIndex(movingStart);
+  moving->SetRegions(region);
+  auto spacing = moving->GetSpacing();
+  auto origin = moving->GetOrigin();
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    spacing[k] *= 1.1;
+    origin[k] += 5.0 + k;
+  }
+  moving->SetSpacing(spacing);
+  moving->SetOrigin(origin);
+  std::array<typename MethodOf<D>::Pointer, 2> runs;
+  for (int b = 0; b < 2; ++b)
+  {
+    runs[b] = MethodOf<D>::New();
+    runs[b]->SetFixedImage(fixed);
+    runs[b]->SetMovingImage(moving);
+    runs[b]->SetNumberOfNodes(nodes);
+    runs[b]->SetNumberOfIterations(iterations);
+    runs[b]->SetEnergyRatio(0.1);
+    runs[b]->SetMaximumNumberOfSweeps(50);
+    runs[b]->SetBackend(b == 0 ? Backend::CPU : Backend::CUDA);
+    runs[b]->Update();
+  }
+  ASSERT_EQ(runs[1]->GetBackendUsed(), Backend::CUDA);
+  const auto * field = runs[1]->GetDisplacementField();
+  EXPECT_EQ(field->GetLargestPossibleRegion(), fixed->GetLargestPossibleRegion());
+  const double difference = MaxDifferenceInVoxels(runs[0]->GetDisplacementField(), field);
+  std::cout << D << "D shifted/other grid: SSD " << runs[0]->GetHistory().front().ssd << " -> CPU "
+            << runs[0]->GetFinalSSD() << ", GPU " << runs[1]->GetFinalSSD() << ", max difference " << difference
+            << " voxel" << std::endl;
+  EXPECT_LT(difference, 0.05);
+  EXPECT_NEAR(runs[1]->GetFinalSSD(), runs[0]->GetFinalSSD(), 1e-3 * runs[0]->GetFinalSSD());
+  EXPECT_LT(runs[1]->GetFinalSSD(), 0.5 * runs[1]->GetHistory().front().ssd);
+}
+
+TEST(CudaRegistration, ShiftedRegionsAndMovingOnAnotherGridMatchCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  ShiftedAndOtherGridRunsAgree<2>(40, 40, 96);
+}
+
+TEST(CudaRegistration, ShiftedRegionsAndMovingOnAnotherGridMatchCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  ShiftedAndOtherGridRunsAgree<3>(150, 20, 40);
 }
 
 TEST(CudaRegistration, RegularMeshRunMatchesCPU2D)

@@ -683,23 +683,24 @@ TEST(DensityFieldFilter, FixedMaskRestrictsForceDensityAndSimilarity)
 
 namespace
 {
-/** dmr::GaussianShrink against ShrinkImageFilter(DiscreteGaussianImageFilter) on a random image with a non-trivial
- * geometry: the same geometry and the same floats, bit for bit, for the pyramid's factors (and an axis too thin for
- * the factor, which then shrinks by less). */
+/** dmr::GaussianShrink against ShrinkImageFilter(DiscreteGaussianImageFilter) on a random image: the same geometry
+ * and the same floats, bit for bit, for the pyramid's factors (and an axis too thin for the factor, which then
+ * shrinks by less). The same image indexed from other starts (3, 4, 5 and -7, -6, -5 along the axes) gets
+ * ShrinkImageFilter's geometry for that start and the same floats as from 0: ShrinkImageFilter itself keeps other
+ * pixels there (it clamps a negative offset to 0, see dmr::PlanGaussianShrink). Rotated (a non-trivial geometry):
+ * sizes whose offsets are whole pixels; otherwise (identity direction, unit spacing, where ShrinkImageFilter's
+ * physical round trip is exact) also sizes whose first kept pixel is half a pixel off, which both round up. */
 template <unsigned int D>
 void
-GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
+GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size, bool rotated)
 {
   using Img = itk::Image<float, D>;
   auto                     image = Img::New();
   typename Img::RegionType region;
-  typename Img::IndexType  start;
   for (unsigned int k = 0; k < D; ++k)
   {
     region.SetSize(k, size[k]);
-    start[k] = static_cast<typename Img::IndexValueType>(3 + k); // a buffer that does not start at 0
   }
-  region.SetIndex(start);
   image->SetRegions(region);
   typename Img::SpacingType   spacing;
   typename Img::PointType     origin;
@@ -707,10 +708,10 @@ GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
   direction.SetIdentity();
   for (unsigned int k = 0; k < D; ++k)
   {
-    spacing[k] = 0.7 + 0.35 * k;
-    origin[k] = -12.5 + 4.0 * k;
+    spacing[k] = rotated ? 0.7 + 0.35 * k : 1.0;
+    origin[k] = rotated ? -12.5 + 4.0 * k : 0.0;
   }
-  const double angle = 0.3;
+  const double angle = rotated ? 0.3 : 0.0;
   direction[0][0] = std::cos(angle);
   direction[0][1] = -std::sin(angle);
   direction[1][0] = std::sin(angle);
@@ -725,12 +726,9 @@ GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
     h = h * 6364136223846793005ULL + 1442695040888963407ULL;
     image->GetBufferPointer()[p] = static_cast<float>(static_cast<double>(h >> 40) * 1e-3 - 5000.0);
   }
-  for (unsigned int level = 1; level <= 3; ++level)
-  {
-    const unsigned int factor = 1u << level;
-    unsigned int       factors[D];
-    auto               smooth = itk::DiscreteGaussianImageFilter<Img, Img>::New();
-    smooth->SetInput(image);
+  auto itkLevel = [](const Img * input, unsigned int factor, unsigned int * factors, bool informationOnly) {
+    auto smooth = itk::DiscreteGaussianImageFilter<Img, Img>::New();
+    smooth->SetInput(input);
     smooth->SetUseImageSpacing(false);
     smooth->SetVariance(0.25 * factor * factor);
     smooth->SetMaximumKernelWidth(64);
@@ -738,31 +736,193 @@ GaussianShrinkMatchesItk(const std::array<unsigned int, D> & size)
     shrink->SetInput(smooth->GetOutput());
     for (unsigned int k = 0; k < D; ++k)
     {
-      factors[k] = std::max<unsigned int>(1, std::min<unsigned int>(factor, size[k] / 2));
+      factors[k] =
+        std::max<unsigned int>(1, std::min<unsigned int>(factor, input->GetLargestPossibleRegion().GetSize()[k] / 2));
       shrink->SetShrinkFactor(k, factors[k]);
     }
-    shrink->Update();
-    const auto * expected = shrink->GetOutput();
-    const auto   actual = itk::dmr::GaussianShrink<D>(image.GetPointer(), 0.25 * factor * factor, 64, factors, nullptr);
-    ASSERT_EQ(actual->GetLargestPossibleRegion(), expected->GetLargestPossibleRegion()) << "level " << level;
-    EXPECT_EQ(actual->GetOrigin(), expected->GetOrigin());
-    EXPECT_EQ(actual->GetSpacing(), expected->GetSpacing());
-    EXPECT_EQ(actual->GetDirection(), expected->GetDirection());
-    size_t different = 0;
-    for (size_t p = 0; p < expected->GetLargestPossibleRegion().GetNumberOfPixels(); ++p)
+    if (informationOnly)
     {
-      different += actual->GetBufferPointer()[p] == expected->GetBufferPointer()[p] ? 0 : 1;
+      shrink->UpdateOutputInformation();
     }
-    EXPECT_EQ(different, 0u) << D << "D level " << level << " of "
-                             << expected->GetLargestPossibleRegion().GetNumberOfPixels() << " pixels";
+    else
+    {
+      shrink->Update();
+    }
+    typename Img::Pointer out = shrink->GetOutput();
+    out->DisconnectPipeline();
+    return out;
+  };
+  for (int shift : { 0, 3, -7 })
+  {
+    auto indexed = Img::New();
+    indexed->Graft(image);
+    typename Img::IndexType start;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      start[k] = static_cast<typename Img::IndexValueType>(shift == 0 ? 0 : shift + static_cast<int>(k));
+    }
+    itk::dmr::test::ShiftRegionStart(indexed.GetPointer(), start);
+    for (unsigned int level = 1; level <= 3; ++level)
+    {
+      const unsigned int factor = 1u << level;
+      unsigned int       factors[D];
+      const auto         values = itkLevel(image.GetPointer(), factor, factors, false);
+      const auto         geometry = itkLevel(indexed.GetPointer(), factor, factors, true);
+      const auto         actual =
+        itk::dmr::GaussianShrink<D>(indexed.GetPointer(), 0.25 * factor * factor, 64, factors, nullptr);
+      ASSERT_EQ(actual->GetLargestPossibleRegion(), geometry->GetLargestPossibleRegion()) << "level " << level;
+      EXPECT_EQ(actual->GetOrigin(), geometry->GetOrigin());
+      EXPECT_EQ(actual->GetSpacing(), geometry->GetSpacing());
+      EXPECT_EQ(actual->GetDirection(), geometry->GetDirection());
+      size_t different = 0;
+      for (size_t p = 0; p < values->GetLargestPossibleRegion().GetNumberOfPixels(); ++p)
+      {
+        different += actual->GetBufferPointer()[p] == values->GetBufferPointer()[p] ? 0 : 1;
+      }
+      EXPECT_EQ(different, 0u) << D << "D level " << level << ", start " << shift << ", of "
+                               << values->GetLargestPossibleRegion().GetNumberOfPixels() << " pixels";
+    }
   }
 }
 } // namespace
 
 TEST(DensityFieldFilter, GaussianShrinkGivesItksSmoothedAndShrunkPyramidLevels)
 {
-  GaussianShrinkMatchesItk<2>({ 37, 29 });
-  GaussianShrinkMatchesItk<2>({ 64, 5 }); // thin: shrinks by 2 at most along y
-  GaussianShrinkMatchesItk<3>({ 33, 26, 19 });
-  GaussianShrinkMatchesItk<3>({ 40, 35, 3 }); // one slice too few for factor 2 along z: no shrink there
+  GaussianShrinkMatchesItk<2>({ 37, 29 }, true);
+  GaussianShrinkMatchesItk<2>({ 65, 5 }, true); // thin: shrinks by 2 at most along y
+  GaussianShrinkMatchesItk<3>({ 33, 25, 19 }, true);
+  GaussianShrinkMatchesItk<3>({ 41, 35, 3 }, true); // one slice too few for factor 2 along z: no shrink there
+  GaussianShrinkMatchesItk<2>({ 64, 26 }, false);   // first kept pixels half a pixel off: rounded up
+  GaussianShrinkMatchesItk<3>({ 40, 26, 18 }, false);
+}
+
+// Regression test (a fixed bug): the moving image was sampled at its continuous index without taking off the start
+// of its region, so images whose region does not start at 0 (CropImageFilter, ExtractImageFilter) were sampled
+// shifted by that start. Sizes 41 x 33 (1 more than a multiple of 4): the shrunk pyramid levels keep the same pixels
+// whatever the start (ShrinkImageFilter rounds a half-pixel offset otherwise, which depends on the start).
+TEST(DensityFieldFilter, RegionsThatDoNotStartAtZeroGiveTheSameResult)
+{
+  const auto direction = itk::dmr::test::RotationDirection2D<ImageType>(0.3);
+  auto       makeImage = [&](const ImageType::PointType & centre) {
+    return itk::dmr::test::MakeImage<ImageType>(
+      ImageType::SizeType{ { 41, 33 } }, Spacing(1.0, 1.2), Origin(-5, 3), direction, Blob(centre));
+  };
+  auto run = [](ImageType * fixed, ImageType * moving) {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(fixed);
+    filter->SetMovingImage(moving);
+    filter->SetDisplacementField(ConstantField(fixed, FieldType::PixelType(0.7f)));
+    filter->SetNumberOfLevels(3);
+    filter->Update();
+    return filter;
+  };
+  const auto   reference = run(makeImage(Origin(8, 20)), makeImage(Origin(10, 18)));
+  const size_t n = 41 * 33;
+  auto         maxForceDifference = [&](FilterType * filter) {
+    double maxDiff = 0.0;
+    for (size_t p = 0; p < n; ++p)
+    {
+      const auto f = reference->GetForceField()->GetBufferPointer()[p];
+      maxDiff = std::max(maxDiff, static_cast<double>((f - filter->GetForceField()->GetBufferPointer()[p]).GetNorm()));
+    }
+    return maxDiff;
+  };
+  double maxForce = 0.0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    maxForce = std::max(maxForce, static_cast<double>(reference->GetForceField()->GetBufferPointer()[p].GetNorm()));
+  }
+  ASSERT_GT(maxForce, 1.0);
+  for (const auto & start : { std::array<int, 2>{ 8, -4 }, std::array<int, 2>{ 7, -3 }, std::array<int, 2>{ 1, 2 } })
+  {
+    ImageType::IndexType index;
+    index[0] = start[0];
+    index[1] = start[1];
+    auto fixed = makeImage(Origin(8, 20));
+    auto moving = makeImage(Origin(10, 18));
+    itk::dmr::test::ShiftRegionStart(fixed.GetPointer(), index);
+    itk::dmr::test::ShiftRegionStart(moving.GetPointer(), index);
+    const auto filter = run(fixed, moving);
+    EXPECT_EQ(filter->GetOutput()->GetLargestPossibleRegion(), fixed->GetLargestPossibleRegion());
+    EXPECT_NEAR(filter->GetMSSD(), reference->GetMSSD(), 1e-9 * reference->GetMSSD()) << start[0] << "," << start[1];
+    EXPECT_LE(maxForceDifference(filter), 1e-5 * maxForce) << start[0] << "," << start[1];
+  }
+  // only the moving image on its own start: another grid, the same image
+  auto                 moving = makeImage(Origin(10, 18));
+  ImageType::IndexType movingStart;
+  movingStart[0] = -11;
+  movingStart[1] = 5;
+  itk::dmr::test::ShiftRegionStart(moving.GetPointer(), movingStart);
+  const auto filter = run(makeImage(Origin(8, 20)), moving);
+  EXPECT_NEAR(filter->GetMSSD(), reference->GetMSSD(), 1e-9 * reference->GetMSSD());
+  EXPECT_LE(maxForceDifference(filter), 1e-5 * maxForce);
+}
+
+// The field and the mask are read pixel for pixel with the fixed image: on another grid they are refused, with the
+// reason; the moving image may lie on any grid.
+TEST(DensityFieldFilter, FieldAndMaskMustLieOnTheFixedGrid)
+{
+  auto image = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } },
+                                                    Spacing(1, 1.5),
+                                                    Origin(2, -1),
+                                                    itk::dmr::test::RotationDirection2D<ImageType>(0.2),
+                                                    Blob(Origin(10, 8)));
+  using MaskType = FilterType::MaskImageType;
+  auto maskLike = [&](auto && change) {
+    auto mask = MaskType::New();
+    mask->CopyInformation(image);
+    mask->SetRegions(image->GetLargestPossibleRegion());
+    change(mask.GetPointer());
+    mask->Allocate(true);
+    mask->FillBuffer(1);
+    return mask;
+  };
+  auto filterWithMask = [&](MaskType * mask) {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(image);
+    filter->SetMovingImage(image);
+    filter->SetFixedMask(mask);
+    return filter;
+  };
+  EXPECT_NO_THROW(filterWithMask(maskLike([](MaskType *) {}))->Update());
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+    filterWithMask(maskLike([](MaskType * m) {
+      auto r = m->GetLargestPossibleRegion();
+      r.SetIndex(0, 3);
+      m->SetRegions(r);
+    })),
+    { "fixed mask must lie on the fixed image grid", "its region starts at [3, 0], the fixed image's at [0, 0]" }));
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+    filterWithMask(maskLike([](MaskType * m) { m->SetOrigin(Origin(2.5, -1)); })), { "fixed mask", "its origin" }));
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+    filterWithMask(maskLike([](MaskType * m) { m->SetSpacing(Spacing(1, 1)); })), { "fixed mask", "its spacing" }));
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+    filterWithMask(
+      maskLike([](MaskType * m) { m->SetDirection(itk::dmr::test::RotationDirection2D<ImageType>(0.0)); })),
+    { "fixed mask", "its direction" }));
+  auto field = ConstantField(image, FieldType::PixelType(0.0f));
+  field->SetOrigin(Origin(0, 0));
+  auto filter = FilterType::New();
+  filter->SetFixedImage(image);
+  filter->SetMovingImage(image);
+  filter->SetDisplacementField(field);
+  EXPECT_TRUE(
+    itk::dmr::test::UpdateThrowsMentioning(filter, { "displacement field must lie on the fixed image grid" }));
+  // a moving image elsewhere (another origin, spacing, direction and size) is sampled through physical space
+  auto moving = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 42, 42 } }, // covers the fixed image
+                                                     Spacing(0.8, 0.9),
+                                                     Origin(-4, -5),
+                                                     itk::dmr::test::RotationDirection2D<ImageType>(-0.1),
+                                                     Blob(Origin(10, 8)));
+  auto elsewhere = FilterType::New();
+  elsewhere->SetFixedImage(image);
+  elsewhere->SetMovingImage(moving);
+  EXPECT_NO_THROW(elsewhere->Update());
+  // the same blob, sampled on two grids: the SSD is small beside the image energy
+  double energy = 0.0;
+  for (size_t p = 0; p < 20 * 16; ++p)
+  {
+    energy += double(image->GetBufferPointer()[p]) * image->GetBufferPointer()[p];
+  }
+  EXPECT_LT(elsewhere->GetSSD(), 0.01 * energy);
 }

@@ -263,6 +263,28 @@ MakeImage(const typename TImage::SizeType &      size,
   return image;
 }
 
+/** Gives the image's largest (and buffered) region the start index `start` and moves its origin so that every pixel
+ * keeps its physical point: the same image, indexed differently (as CropImageFilter or ExtractImageFilter leave it). */
+template <typename TImage>
+void
+ShiftRegionStart(TImage * image, const typename TImage::IndexType & start)
+{
+  const typename TImage::IndexType old = image->GetLargestPossibleRegion().GetIndex();
+  typename TImage::PointType       first;
+  image->TransformIndexToPhysicalPoint(old, first);
+  typename TImage::RegionType region = image->GetLargestPossibleRegion();
+  region.SetIndex(start);
+  image->SetRegions(region); // the buffer keeps its pixels: only their indices change
+  typename TImage::PointType now;
+  image->TransformIndexToPhysicalPoint(start, now);
+  typename TImage::PointType origin = image->GetOrigin();
+  for (unsigned int k = 0; k < TImage::ImageDimension; ++k)
+  {
+    origin[k] += first[k] - now[k];
+  }
+  image->SetOrigin(origin);
+}
+
 /** Image with identity direction and zero origin from a flat buffer (first index fastest). */
 template <typename TImage>
 typename TImage::Pointer

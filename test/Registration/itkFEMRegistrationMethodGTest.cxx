@@ -421,6 +421,37 @@ TEST(FEMRegistrationMethod, BadInputThrows)
   missingMoving->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
   EXPECT_THROW(missingMoving->Update(), itk::ExceptionObject);
 
+  // a mask is read pixel for pixel with the fixed image: one that is not on its grid is refused, with the reason
+  for (const int what : { 0, 1 })
+  {
+    auto mask = MethodType::MaskImageType::New();
+    mask->SetRegions(MethodType::MaskImageType::SizeType{ { 32, 32 } });
+    if (what == 0)
+    {
+      MethodType::MaskImageType::PointType origin;
+      origin[0] = 1.5;
+      origin[1] = 0.0;
+      mask->SetOrigin(origin);
+    }
+    else
+    {
+      auto region = mask->GetLargestPossibleRegion();
+      region.SetIndex(1, 2);
+      mask->SetRegions(region);
+    }
+    mask->Allocate();
+    mask->FillBuffer(1);
+    auto masked = MethodType::New();
+    masked->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
+    masked->SetMovingImage(Blob(32, 32, 17, 16, 8, 8));
+    masked->SetNumberOfNodes(10);
+    masked->SetFixedMask(mask);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(masked,
+                                                       { "FEMRegistrationMethod",
+                                                         "the fixed mask must lie on the fixed image grid",
+                                                         what == 0 ? "its origin" : "starts at" }));
+  }
+
   // a NaN or an infinite intensity: an error naming the image and the pixel, on either back-end, before any work
   for (const float bad : { std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity() })
   {
@@ -475,4 +506,128 @@ TEST(FEMRegistrationMethod, BackendWithoutDevice)
   EXPECT_EQ(autoBackend->GetDevicePeakBytes(), 0u);
   EXPECT_EQ(autoBackend->GetDeviceUsedAtPeakBytes(), 0u);
   EXPECT_LT(autoBackend->GetFinalSSD(), autoBackend->GetHistory().front().ssd);
+}
+
+// Regression test (a fixed bug): the moving image was sampled at its continuous index without taking off the start
+// of its region, so images whose region does not start at 0 (as CropImageFilter and ExtractImageFilter leave them)
+// were registered as if shifted by that start. Sizes 65 x 57 (1 more than a multiple of 4): the pyramid's shrunk
+// grids then keep the same pixels whatever the start (ShrinkImageFilter rounds a half-pixel offset otherwise).
+TEST(FEMRegistrationMethod, RegionsThatDoNotStartAtZeroGiveTheSameRegistration)
+{
+  auto run = [](ImageType * fixed, ImageType * moving) {
+    auto method = MethodType::New();
+    method->SetFixedImage(fixed);
+    method->SetMovingImage(moving);
+    method->SetNumberOfNodes(30);
+    method->SetNumberOfIterations(20);
+    method->SetMeshMode(MeshMode::Dynamic);
+    method->Update();
+    return method;
+  };
+  auto       fixed = Blob(65, 57, 30, 28, 16, 12);
+  auto       moving = Blob(65, 57, 34, 27, 12, 12);
+  const auto reference = run(fixed, moving);
+  const auto referenceField = reference->GetDisplacementField();
+  EXPECT_LT(reference->GetFinalSSD(), 0.7 * reference->GetHistory().front().ssd);
+  for (const auto & start : { std::array<int, 2>{ 7, -3 }, std::array<int, 2>{ -12, 5 } })
+  {
+    ImageType::IndexType index;
+    index[0] = start[0];
+    index[1] = start[1];
+    auto shiftedFixed = Blob(65, 57, 30, 28, 16, 12);
+    auto shiftedMoving = Blob(65, 57, 34, 27, 12, 12);
+    itk::dmr::test::ShiftRegionStart(shiftedFixed.GetPointer(), index);
+    itk::dmr::test::ShiftRegionStart(shiftedMoving.GetPointer(), index);
+    const auto method = run(shiftedFixed, shiftedMoving);
+    const auto field = method->GetDisplacementField();
+    EXPECT_EQ(field->GetLargestPossibleRegion(), shiftedFixed->GetLargestPossibleRegion());
+    EXPECT_EQ(field->GetBufferedRegion(), shiftedFixed->GetLargestPossibleRegion());
+    EXPECT_EQ(field->GetOrigin(), shiftedFixed->GetOrigin());
+    EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 1e-9 * reference->GetFinalSSD());
+    // the same field pixel for pixel (the mesh nodes go through physical space and back: rounding only)
+    double maxDiff = 0.0;
+    for (size_t p = 0; p < 65 * 57; ++p)
+    {
+      maxDiff = std::max(maxDiff, (field->GetBufferPointer()[p] - referenceField->GetBufferPointer()[p]).GetNorm());
+    }
+    EXPECT_LE(maxDiff, 1e-6);
+    // and the transforms map the same physical points
+    ImageType::PointType x;
+    x[0] = 40.3;
+    x[1] = 27.7;
+    const auto a = method->GetTransform()->TransformPoint(x);
+    const auto b = reference->GetTransform()->TransformPoint(x);
+    EXPECT_GT(b.EuclideanDistanceTo(x), 0.1);
+    EXPECT_NEAR(a.EuclideanDistanceTo(b), 0.0, 1e-6);
+  }
+}
+
+// Regression test (a fixed bug): the method promises a moving image on any grid (sampled through physical space), but
+// its density filter inherited ImageToImageFilter's rule that all inputs share the fixed image's physical space and
+// threw "Inputs do not occupy the same physical space". Here the moving image is the same function of the physical
+// point on a larger grid with another origin, whose pixels fall on the fixed image's pixels (one level: no pyramid, so
+// the samples are the same; only the moving gradient at the old border and samples beyond it may differ, where the
+// blob is about 0).
+TEST(FEMRegistrationMethod, MovingImageOnAnotherGrid)
+{
+  auto run = [](ImageType * moving, unsigned int levels) {
+    auto method = MethodType::New();
+    method->SetFixedImage(Blob(64, 56, 30, 28, 16, 12));
+    method->SetMovingImage(moving);
+    method->SetNumberOfNodes(30);
+    method->SetNumberOfIterations(20);
+    method->SetNumberOfLevels(levels);
+    method->Update();
+    return method;
+  };
+  const auto           reference = run(Blob(64, 56, 34, 27, 12, 12), 1);
+  auto                 padded = Blob(64 + 8, 56 + 6, 34 + 3, 27 + 2, 12, 12); // 3 pixels more on the left, 2 below
+  ImageType::PointType origin;
+  origin[0] = -3.0;
+  origin[1] = -2.0;
+  padded->SetOrigin(origin);
+  const auto method = run(padded, 1);
+  EXPECT_LT(reference->GetFinalSSD(), 0.7 * reference->GetHistory().front().ssd);
+  EXPECT_NEAR(
+    method->GetHistory().front().ssd, reference->GetHistory().front().ssd, 1e-6 * reference->GetHistory().front().ssd);
+  EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 1e-3 * reference->GetFinalSSD());
+  double maxDiff = 0.0, maxU = 0.0;
+  for (size_t p = 0; p < 64 * 56; ++p)
+  {
+    const auto & u = reference->GetDisplacementField()->GetBufferPointer()[p];
+    maxU = std::max(maxU, static_cast<double>(u.GetNorm()));
+    maxDiff = std::max(maxDiff, (method->GetDisplacementField()->GetBufferPointer()[p] - u).GetNorm());
+  }
+  EXPECT_GT(maxU, 0.5);
+  EXPECT_LE(maxDiff, 1e-3 * maxU);
+
+  // a rotated, finer moving grid with the pyramid: the same shapes, registered as well
+  auto       fine = ImageType::New();
+  const auto direction = itk::dmr::test::RotationDirection2D<ImageType>(0.4);
+  fine->SetRegions(ImageType::SizeType{ { 150, 140 } });
+  ImageType::SpacingType spacing;
+  spacing[0] = 0.6;
+  spacing[1] = 0.7;
+  fine->SetSpacing(spacing);
+  fine->SetDirection(direction);
+  ImageType::PointType fineOrigin;
+  fineOrigin[0] = 20.0;
+  fineOrigin[1] = -25.0;
+  fine->SetOrigin(fineOrigin);
+  fine->Allocate();
+  itk::ImageRegionIteratorWithIndex<ImageType> it(fine, fine->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    ImageType::PointType x;
+    fine->TransformIndexToPhysicalPoint(it.GetIndex(), x);
+    const double r = std::sqrt(std::pow((x[0] - 34) / 12, 2) + std::pow((x[1] - 27) / 12, 2));
+    it.Set(static_cast<float>(1.0 / (1.0 + std::exp((r - 1.0) * 8.0))));
+  }
+  const auto onThreeLevels = run(Blob(64, 56, 34, 27, 12, 12), 3);
+  const auto fineMethod = run(fine, 3);
+  EXPECT_NEAR(fineMethod->GetHistory().front().ssd,
+              onThreeLevels->GetHistory().front().ssd,
+              0.02 * onThreeLevels->GetHistory().front().ssd);
+  EXPECT_LT(fineMethod->GetFinalSSD(), 0.7 * fineMethod->GetHistory().front().ssd);
+  EXPECT_NEAR(fineMethod->GetFinalSSD(), onThreeLevels->GetFinalSSD(), 0.25 * onThreeLevels->GetFinalSSD());
 }

@@ -37,10 +37,10 @@ namespace dmr
  * one axis after the other, the last axis first, each pass storing floats: out(v) = float(sum_k c_k double(in(v + (k -
  * r) e))) summed in double in kernel order, the index clamped to the image, c the coefficients of GaussianOperator
  * <double> (variance, MaximumKernelWidth, MaximumError 0.01). ShrinkImageFilter then keeps input index o f + offset of
- * every output index o. Only the kept indices matter, so each pass is computed only where a later pass or the output
- * reads it: the pass along axis d at the kept indices of axes d..D-1 and at every index of the axes below d. The same
- * operations in the same order give the same floats; the geometry is ShrinkImageFilter's own (its output
- * information). */
+ * every output index o (see PlanGaussianShrink for the offset). Only the kept indices matter, so each pass is computed
+ * only where a later pass or the output reads it: the pass along axis d at the kept indices of axes d..D-1 and at every
+ * index of the axes below d. The same operations in the same order give the same floats; the geometry is
+ * ShrinkImageFilter's own (its output information). */
 /** What GaussianShrink computes, without computing it: the output's geometry (ShrinkImageFilter's output information
  * and region, no buffer) and, per axis, the kept input positions and the Gaussian coefficients. The GPU back-end runs
  * the same passes from it (dmr::cuda::RegistrationContext::Initialize). */
@@ -72,24 +72,28 @@ PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKe
   plan.output->CopyInformation(shrink->GetOutput());
   plan.output->SetRegions(shrink->GetOutput()->GetLargestPossibleRegion());
 
-  // ShrinkImageFilter's index mapping (its offset from the first output index's physical point)
-  const auto &                  inRegion = image->GetBufferedRegion();
-  const auto &                  outRegion = plan.output->GetLargestPossibleRegion();
-  typename ImageType::PointType tempPoint;
-  plan.output->TransformIndexToPhysicalPoint(outRegion.GetIndex(), tempPoint);
-  const auto inputIndex = image->TransformPhysicalPointToIndex(tempPoint);
+  // The kept input pixels. ShrinkImageFilter places the output so that its centre and the input's coincide, then keeps
+  // input pixel f o + offset of output pixel o, the offset found by rounding (half up) the input continuous index of
+  // the first output pixel, (n - 1)/2 - (m - 1) f/2 after the input's first pixel. It computes that index through
+  // physical points, where floating-point noise rounds a half-pixel offset either way, and it clamps a negative offset
+  // to 0, which shifts the kept pixels of images whose region starts at some indices (e.g. 5 or -7 with f = 4): the
+  // same image then gives another level depending on how its region is indexed. Here the offset is computed exactly
+  // in index arithmetic, so the level depends on the pixels only (the same pixels as ShrinkImageFilter wherever its
+  // rounding is exact and its offset not clamped, as for every region starting at 0).
+  const auto & inRegion = image->GetBufferedRegion();
+  const auto & outRegion = plan.output->GetLargestPossibleRegion();
   for (unsigned int k = 0; k < D; ++k)
   {
     plan.inputSize[k] = static_cast<int64_t>(inRegion.GetSize()[k]);
     plan.outputSize[k] = static_cast<int64_t>(outRegion.GetSize()[k]);
-    const int64_t offset = std::max<int64_t>(
-      0, static_cast<int64_t>(inputIndex[k]) - static_cast<int64_t>(outRegion.GetIndex()[k]) * factors[k]);
+    const int64_t f = static_cast<int64_t>(factors[k]);
+    const int64_t twice = (plan.inputSize[k] - 1) - (plan.outputSize[k] - 1) * f; // twice the first kept position
+    const int64_t first = (twice + 1) / 2;                                        // half up (twice >= 0)
     plan.kept[k].resize(static_cast<size_t>(plan.outputSize[k]));
     for (int64_t o = 0; o < plan.outputSize[k]; ++o)
     {
-      const int64_t i = (static_cast<int64_t>(outRegion.GetIndex()[k]) + o) * factors[k] + offset -
-                        static_cast<int64_t>(inRegion.GetIndex()[k]);
-      if (i < 0 || i >= plan.inputSize[k])
+      const int64_t i = first + o * f;
+      if (twice < 0 || i >= plan.inputSize[k])
       {
         itkGenericExceptionMacro("GaussianShrink: output index " << o << " maps outside the input along axis " << k);
       }

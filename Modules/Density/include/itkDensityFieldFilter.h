@@ -193,8 +193,11 @@ protected:
   ~DensityFieldFilter() override = default;
   void
   PrintSelf(std::ostream & os, Indent indent) const override;
-  /** Checks of the inputs' sizes, once the pipeline's information pass has updated them (an input may be the
-   * output of a filter that has not run yet). */
+  /** Checks of the inputs' geometry, once the pipeline's information pass has updated them (an input may be the
+   * output of a filter that has not run yet). Not ImageToImageFilter's check, which wants every input in the fixed
+   * image's physical space: the moving image may lie on any grid. The displacement field and the mask are read pixel
+   * for pixel with the fixed image, so they must have its region (start and size), origin, spacing and direction
+   * (to the filter's CoordinateTolerance and DirectionTolerance). */
   void
   VerifyInputInformation() ITKv5_CONST override;
   void

@@ -63,7 +63,7 @@ template <typename TF, typename TM, typename TD, typename TO>
 void
 DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
 {
-  Superclass::VerifyInputInformation();
+  ProcessObject::VerifyInputInformation(); // not ImageToImageFilter's: the moving image may lie on any grid
   const FixedImageType * fixed = this->GetFixedImage();
   const auto             fixedSize = fixed->GetLargestPossibleRegion().GetSize();
   for (unsigned int k = 0; k < ImageDimension; ++k)
@@ -74,20 +74,20 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
                                                                                               << fixedSize[k]);
     }
   }
-  const DisplacementFieldType * field = this->GetDisplacementField();
-  if (field != nullptr && field->GetLargestPossibleRegion().GetSize() != fixedSize)
-  {
-    itkExceptionMacro("the displacement field must lie on the fixed image grid: its size "
-                      << field->GetLargestPossibleRegion().GetSize() << " differs from the fixed image size "
-                      << fixedSize);
-  }
-  const MaskImageType * mask = this->GetFixedMask();
-  if (mask != nullptr && mask->GetLargestPossibleRegion().GetSize() != fixedSize)
-  {
-    itkExceptionMacro("the fixed mask must lie on the fixed image grid: its size "
-                      << mask->GetLargestPossibleRegion().GetSize() << " differs from the fixed image size "
-                      << fixedSize);
-  }
+  auto checkOnFixedGrid = [&](const ImageBase<ImageDimension> * image, const char * what) {
+    if (image == nullptr)
+    {
+      return;
+    }
+    const std::string why =
+      dmr::GridMismatch<ImageDimension>(fixed, image, this->GetCoordinateTolerance(), this->GetDirectionTolerance());
+    if (!why.empty())
+    {
+      itkExceptionMacro("the " << what << " must lie on the fixed image grid: " << why);
+    }
+  };
+  checkOnFixedGrid(this->GetDisplacementField(), "displacement field");
+  checkOnFixedGrid(this->GetFixedMask(), "fixed mask");
 }
 
 template <typename TF, typename TM, typename TD, typename TO>
@@ -213,8 +213,9 @@ WarpJacobianTranspose(const Grid<D> &                grid,
   }
 }
 
-/** Affine map from a reference image's indices to another image's continuous indices through physical space:
- * c = A * index + c0. */
+/** Affine map from a reference image's buffer positions (index minus the start of its largest region) to another
+ * image's buffer positions through physical space: c = A * position + c0. Both images' buffers are read from 0, so
+ * the other image's start index is taken off (a region need not start at 0, e.g. after CropImageFilter). */
 template <unsigned int D, typename TRef, typename TOther>
 void
 IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D][D], double (&c0)[D])
@@ -224,9 +225,10 @@ IndexToContinuousIndexMap(const TRef * ref, const TOther * other, double (&A)[D]
   typename TRef::PointType p0;
   ref->TransformIndexToPhysicalPoint(start, p0);
   const auto ci0 = other->template TransformPhysicalPointToContinuousIndex<double, double>(p0);
+  const auto otherStart = other->GetLargestPossibleRegion().GetIndex();
   for (unsigned int r = 0; r < D; ++r)
   {
-    c0[r] = ci0[r];
+    c0[r] = ci0[r] - static_cast<double>(otherStart[r]);
   }
   for (unsigned int k = 0; k < D; ++k)
   {

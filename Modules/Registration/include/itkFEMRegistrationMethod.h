@@ -52,10 +52,11 @@ namespace itk
  *     a strongly deformed region grows (circle to leaf). The MSSD of an accepted step is the next iteration's force
  *     evaluation, so only rejected steps cost extra. MaximumStepHalvings = 0 is the paper's plain iteration.
  * The force uses the gradient of the warped moving image by default (ForceGradient, see DensityFieldFilter).
- * Inputs: FixedImage, MovingImage (any grid: sampled through physical space), optional FixedMask (region of
- * interest on the fixed grid), optional StaticMesh (physical
- * itk::Mesh of triangles for MeshMode Static). Output 0: the transform (DisplacementFieldTransform, decorated),
- * output 1: its displacement field on the fixed grid in mm (ITK convention: moving point = fixed point + u).
+ * Inputs: FixedImage, MovingImage (any grid: sampled through physical space; neither region needs to start at index
+ * 0), optional FixedMask (region of interest on the fixed grid: the fixed image's region, origin, spacing and
+ * direction), optional StaticMesh (physical itk::Mesh of triangles for MeshMode Static). Output 0: the transform
+ * (DisplacementFieldTransform, decorated), output 1: its displacement field on the fixed grid in mm (ITK convention:
+ * moving point = fixed point + u).
  * Fires IterationEvent after every iteration (GetCurrentIteration, GetCurrentMesh, GetHistory are valid then) and
  * ProgressEvent; honours AbortGenerateData between iterations.
  *

@@ -132,6 +132,19 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
   {
     itkExceptionMacro("NumberOfNodes (" << m_NumberOfNodes << ") exceeds the number of pixels (" << pixels << ")");
   }
+  // the mask is read pixel for pixel with the fixed image (the moving image may lie on any grid)
+  if (const MaskImageType * mask = this->GetFixedMask())
+  {
+    const std::string why =
+      dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
+                                        mask,
+                                        ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
+                                        ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance());
+    if (!why.empty())
+    {
+      itkExceptionMacro("the fixed mask must lie on the fixed image grid: " << why);
+    }
+  }
 }
 
 template <typename TF, typename TM, typename TD>
@@ -712,11 +725,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   std::vector<uint8_t> mask;
   if (const auto * maskImage = this->GetFixedMask())
   {
-    if (maskImage->GetLargestPossibleRegion().GetSize() != fixed->GetLargestPossibleRegion().GetSize())
-    {
-      itkExceptionMacro("the fixed mask must lie on the fixed image grid");
-    }
-    mask.resize(n);
+    mask.resize(n); // on the fixed grid (VerifyInputInformation)
     const auto * m = maskImage->GetBufferPointer();
     for (size_t p = 0; p < n; ++p)
     {
