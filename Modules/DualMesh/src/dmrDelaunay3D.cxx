@@ -28,6 +28,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <mutex>
 #include <numeric>
 
 namespace itk
@@ -647,6 +648,11 @@ TetGenOnUnique(const std::vector<double> &           xyz,
   char switches[] = "zQJ";
   try
   {
+    // TetGen is not reentrant (its predicates' static filters, computed from each call's bounding box, are globals;
+    // it seeds and draws the C library's rand()): one run at a time in the process, e.g. when two registrations run
+    // on two threads of one program.
+    static std::mutex           tetgenMutex;
+    std::lock_guard<std::mutex> lock(tetgenMutex);
     tetrahedralize(switches, &in, &out);
   }
   catch (int code)
