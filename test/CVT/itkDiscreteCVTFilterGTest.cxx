@@ -109,14 +109,32 @@ TEST(DiscreteCVTFilter, BadInputThrows)
     EXPECT_THROW(filter->Update(), itk::ExceptionObject);
   }
   {
+    auto density = MakeDensity();
     auto filter = FilterType::New();
-    filter->SetInput(MakeDensity());
+    filter->SetInput(density);
     filter->SetNumberOfCells(12);
     auto wrong = LabelImageType::New();
+    wrong->CopyInformation(density); // the same physical space, another size
     wrong->SetRegions(LabelImageType::SizeType{ { 10, 10 } });
     wrong->Allocate(true);
     filter->SetInitialLabels(wrong);
-    EXPECT_THROW(filter->Update(), itk::ExceptionObject);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      filter, { "InitialLabels must lie on the density image's grid", "differs from the density image size" }));
+  }
+  {
+    // the density's size but another region start: the same pixels would belong to other points
+    auto density = MakeDensity();
+    auto filter = FilterType::New();
+    filter->SetInput(density);
+    filter->SetNumberOfCells(12);
+    auto shifted = LabelImageType::New();
+    shifted->CopyInformation(density);
+    auto region = density->GetLargestPossibleRegion();
+    region.SetIndex(0, 5);
+    shifted->SetRegions(region);
+    shifted->Allocate(true);
+    filter->SetInitialLabels(shifted);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(filter, { "its region starts at [5, 0]" }));
   }
 }
 

@@ -80,11 +80,15 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyInputInformation() ITKv5_CO
     itkExceptionMacro("NumberOfCells (" << m_NumberOfCells << ") exceeds the number of pixels (" << numberOfPixels
                                         << ")");
   }
-  const LabelImageType * initial = this->GetInitialLabels();
-  if (initial &&
-      initial->GetLargestPossibleRegion().GetSize() != this->GetInput()->GetLargestPossibleRegion().GetSize())
+  // read pixel for pixel with the density: its region (ImageToImageFilter checked origin, spacing and direction)
+  if (const LabelImageType * initial = this->GetInitialLabels())
   {
-    itkExceptionMacro("InitialLabels must have the size of the density image");
+    const std::string why = dmr::GridMismatch<ImageDimension>(
+      this->GetInput(), initial, this->GetCoordinateTolerance(), this->GetDirectionTolerance(), "the density image");
+    if (!why.empty())
+    {
+      itkExceptionMacro("InitialLabels must lie on the density image's grid: " << why);
+    }
   }
 }
 

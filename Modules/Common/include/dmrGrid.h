@@ -297,13 +297,15 @@ ParallelForChunkIds(MultiThreaderBase * threader, size_t numberOfChunks, TBody &
 /** Why `image` does not lie on the grid of `reference` (the same largest region, start and size, and the same origin,
  * spacing and direction), or an empty string when it does. Origin and spacing are compared to coordinateTolerance x
  * the reference's first spacing, the direction to directionTolerance: ImageToImageFilter's rule. For inputs that are
- * read pixel for pixel with the reference (a mask, a displacement field). */
+ * read pixel for pixel with the reference (a mask, a displacement field, initial labels); referenceName names the
+ * reference in the reason. */
 template <unsigned int VDimension>
 std::string
 GridMismatch(const ImageBase<VDimension> * reference,
              const ImageBase<VDimension> * image,
              double                        coordinateTolerance,
-             double                        directionTolerance)
+             double                        directionTolerance,
+             const char *                  referenceName = "the fixed image")
 {
   std::ostringstream why;
   const auto &       region = image->GetLargestPossibleRegion();
@@ -311,24 +313,27 @@ GridMismatch(const ImageBase<VDimension> * reference,
   const double       tolerance = std::abs(coordinateTolerance * reference->GetSpacing()[0]);
   if (region.GetSize() != referenceRegion.GetSize())
   {
-    why << "its size " << region.GetSize() << " differs from the fixed image size " << referenceRegion.GetSize();
+    why << "its size " << region.GetSize() << " differs from " << referenceName << " size "
+        << referenceRegion.GetSize();
   }
   else if (region.GetIndex() != referenceRegion.GetIndex())
   {
-    why << "its region starts at " << region.GetIndex() << ", the fixed image's at " << referenceRegion.GetIndex();
+    why << "its region starts at " << region.GetIndex() << ", " << referenceName << "'s at "
+        << referenceRegion.GetIndex();
   }
   else if (!image->GetOrigin().GetVnlVector().is_equal(reference->GetOrigin().GetVnlVector(), tolerance))
   {
-    why << "its origin " << image->GetOrigin() << " differs from the fixed image's " << reference->GetOrigin();
+    why << "its origin " << image->GetOrigin() << " differs from " << referenceName << "'s " << reference->GetOrigin();
   }
   else if (!image->GetSpacing().GetVnlVector().is_equal(reference->GetSpacing().GetVnlVector(), tolerance))
   {
-    why << "its spacing " << image->GetSpacing() << " differs from the fixed image's " << reference->GetSpacing();
+    why << "its spacing " << image->GetSpacing() << " differs from " << referenceName << "'s "
+        << reference->GetSpacing();
   }
   else if (!image->GetDirection().GetVnlMatrix().as_ref().is_equal(reference->GetDirection().GetVnlMatrix().as_ref(),
                                                                    directionTolerance))
   {
-    why << "its direction differs from the fixed image's";
+    why << "its direction differs from " << referenceName << "'s";
   }
   return why.str();
 }
