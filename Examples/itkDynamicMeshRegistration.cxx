@@ -292,7 +292,9 @@ ParseArguments(int argc, char * argv[])
   if (!opt.report.empty())
   {
     const std::string dir = itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
-    if (!itksys::SystemTools::FileIsDirectory(dir))
+    // the output directory may not exist yet: the tool creates it
+    const bool inOutputDir = !opt.outputDir.empty() && dir == itksys::SystemTools::CollapseFullPath(opt.outputDir);
+    if (!inOutputDir && !itksys::SystemTools::FileIsDirectory(dir))
       throw UsageError("--report: no such directory: " + dir);
     if (itksys::SystemTools::FileIsDirectory(opt.report))
       throw UsageError("--report names a directory: " + opt.report);
@@ -877,8 +879,12 @@ Run(const Options & opt)
   }
   if (!opt.report.empty())
   {
-    // written before the outputs are committed, so a failure here leaves nothing behind in the output directory
-    std::ofstream out(opt.report);
+    // written before the outputs are committed, so a failure here leaves nothing behind in the output directory; a
+    // report inside the output directory is staged and committed with the outputs
+    const std::string reportDir =
+      itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
+    const bool    staged = reportDir == itksys::SystemTools::CollapseFullPath(opt.outputDir);
+    std::ofstream out(staged ? staging.Path(itksys::SystemTools::GetFilenameName(opt.report)) : opt.report);
     out << json.str();
     if (!out)
     {

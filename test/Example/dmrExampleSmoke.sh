@@ -249,12 +249,14 @@ run-dynamic)
   ;;
 run-regular)
   out="$W/out"
+  # --report inside the output directory, which the tool creates
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \
-    --nodes 30 --iterations 5 --threads 2 --mesh regular
+    --nodes 30 --iterations 5 --threads 2 --mesh regular --report "$out/summary.json"
   cat "$W/stdout" "$W/stderr"
   check "registration exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 regular 30
+  check "--report in the new output directory is written" cmp "$out/summary.json" "$out/report.json"
   ;;
 run-fidelity)
   out="$W/out"
