@@ -103,7 +103,7 @@ const char * const Usage =
   "  --iterations K         registration iterations (default 100)\n"
   "  --levels L             pyramid levels summed in the MSSD (default 3)\n"
   "  --mesh MODE            dynamic (default) | regular | a mesh file (e.g. .vtk) used as a static mesh\n"
-  "  --regular-size n       nodes per axis of the regular mesh (default round(N^(1/dim)))\n"
+  "  --regular-size n       nodes per axis of the regular mesh, at least 3 (default round(N^(1/dim)))\n"
   "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
   "  --energy-ratio R       beta is set at iteration 1 so that beta R / D = R (default 0.02, paper 5.1)\n"
   "  --alpha-factor A       density base value alpha = A x mean |f|^2 (default 0.1, paper 5.1)\n"
@@ -274,8 +274,8 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--force-gradient must be warped or mapped");
   if (opt.backend != "auto" && opt.backend != "cpu" && opt.backend != "cuda")
     throw UsageError("--backend must be auto, cpu or cuda");
-  if (opt.regularSize != 0 && opt.regularSize < 2)
-    throw UsageError("--regular-size must be at least 2");
+  if (opt.regularSize < 0) // 1 and 2 the registration refuses (with the reason)
+    throw UsageError("--regular-size must not be negative");
   if (opt.cvtMaxSweeps < 1)
     throw UsageError("--cvt-max-sweeps must be at least 1");
   if (!(opt.cvtEpsilon >= 0.0 && opt.cvtEpsilon <= 1.0))

@@ -381,6 +381,24 @@ bad-thin-image)
   check "the message names the axis ($(cat "$W/stderr"))" \
     grep -q "error: FEMRegistrationMethod: the fixed image needs at least 4 pixels along every axis; axis 2 has 3" "$W/stderr"
   ;;
+bad-mesh-without-free-node)
+  # border nodes are fixed: a regular mesh of 2 nodes per axis, or a static mesh with only border nodes, moves nothing
+  printf '%s\n' "# vtk DataFile Version 3.0" "corners" "ASCII" "DATASET POLYDATA" "POINTS 4 double" "0 0 0" "511 0 0" \
+    "511 -511 0" "0 -511 0" "POLYGONS 2 8" "3 0 1 2" "3 0 2 3" >"$W/corners.vtk"
+  expect_bad_input regular-size-2 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh regular \
+    --regular-size 2 --iterations 2
+  expect_bad_input corner-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh "$W/corners.vtk" \
+    --iterations 2
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-regular" --mesh regular \
+    --regular-size 2 --iterations 2
+  check "regular size 2: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q "RegularGridSize (2) must be 0 (from NumberOfNodes) or at least 3" "$W/stderr"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-corners" \
+    --mesh "$W/corners.vtk" --iterations 2
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q "the static mesh has no free node: all its 4 nodes lie on the border" "$W/stderr"
+  ;;
 bad-constant-image)
   check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"
   check "make a 32x32 non-constant partner" "$CHECK" make-2d "$W/image2d.nii.gz"

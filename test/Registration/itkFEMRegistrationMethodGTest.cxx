@@ -19,6 +19,7 @@
 #include "itkCastImageFilter.h"
 #include "itkCommand.h"
 #include "itkResampleImageFilter.h"
+#include "itkTriangleCell.h"
 #include "dmrFieldImage.h"
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
@@ -420,6 +421,42 @@ TEST(FEMRegistrationMethod, BadInputThrows)
   auto missingMoving = MethodType::New();
   missingMoving->SetFixedImage(Blob(32, 32, 16, 16, 8, 8));
   EXPECT_THROW(missingMoving->Update(), itk::ExceptionObject);
+
+  // border nodes are fixed: a mesh whose nodes all lie on the border cannot move anything, so it is refused
+  auto twoPerAxis = SmallRegistration(MeshMode::Regular, 5);
+  twoPerAxis->SetRegularGridSize(2);
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(twoPerAxis, { "RegularGridSize (2) must be 0" }));
+  auto fiveNodes = SmallRegistration(MeshMode::Regular, 5);
+  fiveNodes->SetNumberOfNodes(5); // round(sqrt(5)) = 2 per axis
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+    fiveNodes, { "NumberOfNodes (5) gives a Regular mesh of 2 nodes along axis 0", "at least 3 per axis" }));
+  auto threePerAxis = SmallRegistration(MeshMode::Regular, 5);
+  threePerAxis->SetRegularGridSize(3); // one free node
+  EXPECT_NO_THROW(threePerAxis->Update());
+  {
+    using MeshType = MethodType::MeshType;
+    auto corners = MeshType::New();
+    for (unsigned int i = 0; i < 4; ++i)
+    {
+      MeshType::PointType p;
+      p[0] = (i == 1 || i == 2) ? 63.0 : 0.0; // the corners of the 64 x 56 image
+      p[1] = i >= 2 ? 55.0 : 0.0;
+      corners->SetPoint(i, p);
+    }
+    for (unsigned int t = 0; t < 2; ++t)
+    {
+      MeshType::CellAutoPointer cell;
+      cell.TakeOwnership(new itk::TriangleCell<MeshType::CellType>);
+      cell->SetPointId(0, 0);
+      cell->SetPointId(1, t == 0 ? 1 : 2);
+      cell->SetPointId(2, t == 0 ? 2 : 3);
+      corners->SetCell(t, cell);
+    }
+    auto cornerMesh = SmallRegistration(MeshMode::Static, 5);
+    cornerMesh->SetStaticMesh(corners);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      cornerMesh, { "the static mesh has no free node: all its 4 nodes lie on the border" }));
+  }
 
   // a mask is read pixel for pixel with the fixed image: one that is not on its grid is refused, with the reason
   for (const int what : { 0, 1 })

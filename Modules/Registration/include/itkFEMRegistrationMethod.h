@@ -179,7 +179,8 @@ public:
   itkGetConstMacro(ReinitializationInterval, unsigned int);
   itkSetEnumMacro(MeshMode, MeshModeEnum);
   itkGetEnumMacro(MeshMode, MeshModeEnum);
-  /** Nodes per axis of the Regular mesh; 0 = round(NumberOfNodes^(1/D)). */
+  /** Nodes per axis of the Regular mesh; 0 = round(NumberOfNodes^(1/D)). At most the pixels along an axis; at least 3
+   * along every axis, or no node would be free (border nodes are fixed). */
   itkSetMacro(RegularGridSize, unsigned int);
   itkGetConstMacro(RegularGridSize, unsigned int);
   itkSetEnumMacro(Backend, BackendEnum);
@@ -284,6 +285,9 @@ private:
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
   void
   BuildStaticMesh();
+  /** Nodes per axis of the Regular mesh on the fixed image's grid. */
+  std::array<size_t, ImageDimension>
+  RegularNodesPerAxis() const;
   /** Both back-ends: zero output field, the stages' settings, history/timing/beta reset (needs m_BackendUsed). */
   void
   ConfigureStages();

@@ -132,6 +132,28 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
   {
     itkExceptionMacro("NumberOfNodes (" << m_NumberOfNodes << ") exceeds the number of pixels (" << pixels << ")");
   }
+  if (m_MeshMode == MeshModeEnum::Regular)
+  {
+    // border nodes are fixed: with 2 nodes along an axis every node lies on the border and nothing can move
+    if (m_RegularGridSize == 1 || m_RegularGridSize == 2)
+    {
+      itkExceptionMacro("RegularGridSize (" << m_RegularGridSize
+                                            << ") must be 0 (from NumberOfNodes) or at least 3: with fewer nodes per "
+                                               "axis every node lies on the image border, where the displacement is "
+                                               "fixed");
+    }
+    const auto nodes = this->RegularNodesPerAxis();
+    for (unsigned int k = 0; k < ImageDimension; ++k)
+    {
+      if (nodes[k] < 3)
+      {
+        itkExceptionMacro("NumberOfNodes (" << m_NumberOfNodes << ") gives a Regular mesh of " << nodes[k]
+                                            << " nodes along axis " << k
+                                            << ", all on the image border, where the displacement is fixed: use at "
+                                               "least 3 per axis (NumberOfNodes or RegularGridSize)");
+      }
+    }
+  }
   // the mask is read pixel for pixel with the fixed image (the moving image may lie on any grid)
   if (const MaskImageType * mask = this->GetFixedMask())
   {
@@ -521,24 +543,41 @@ FEMRegistrationMethod<TF, TM, TD>::BuildStaticMesh()
   const auto             grid = dmr::Grid<D>::FromImage(this->GetFixedImage());
   if (m_MeshMode == MeshModeEnum::Regular)
   {
-    unsigned int perAxis = m_RegularGridSize;
-    if (perAxis == 0)
-    {
-      perAxis = static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / D)));
-    }
-    std::array<size_t, D> nodes;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, grid.size[k]));
-    }
-    m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, nodes);
+    m_StaticSimplexMesh = dmr::MakeRegularMesh<D>(grid, this->RegularNodesPerAxis()); // checked: a node is free
   }
   else
   {
     m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), this->GetFixedImage());
+    if (std::find(m_StaticSimplexMesh.fixed.begin(), m_StaticSimplexMesh.fixed.end(), 0) ==
+        m_StaticSimplexMesh.fixed.end())
+    {
+      itkExceptionMacro("the static mesh has no free node: all its "
+                        << m_StaticSimplexMesh.NumberOfNodes()
+                        << " nodes lie on the border of the image, where "
+                           "the displacement is fixed, so nothing can move");
+    }
   }
   m_CurrentMesh = &m_StaticSimplexMesh;
   m_Timing.meshConstruction += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+template <typename TF, typename TM, typename TD>
+auto
+FEMRegistrationMethod<TF, TM, TD>::RegularNodesPerAxis() const -> std::array<size_t, ImageDimension>
+{
+  const auto   size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
+  unsigned int perAxis = m_RegularGridSize;
+  if (perAxis == 0)
+  {
+    perAxis =
+      static_cast<unsigned int>(std::lround(std::pow(static_cast<double>(m_NumberOfNodes), 1.0 / ImageDimension)));
+  }
+  std::array<size_t, ImageDimension> nodes;
+  for (unsigned int k = 0; k < ImageDimension; ++k)
+  {
+    nodes[k] = std::max<size_t>(2, std::min<size_t>(perAxis, size[k]));
+  }
+  return nodes;
 }
 
 template <typename TF, typename TM, typename TD>
