@@ -49,6 +49,12 @@
 #include <vtkPointData.h>
 #include <vtkUnstructuredGrid.h>
 #include <vtkXMLUnstructuredGridWriter.h>
+#include <vtkXMLUnstructuredGridReader.h>
+#include <vtkUnstructuredGridReader.h>
+#include <vtkCallbackCommand.h>
+#include <vtkCellType.h>
+#include <vtkOutputWindow.h>
+#include <vtkLogger.h>
 #endif
 
 #include <chrono>
@@ -102,7 +108,7 @@ const char * const Usage =
   "  --nodes N              mesh nodes (default 100 in 2D, 3000 in 3D; on small images at most one per 8 pixels)\n"
   "  --iterations K         registration iterations (default 100)\n"
   "  --levels L             pyramid levels summed in the MSSD (default 3)\n"
-  "  --mesh MODE            dynamic (default) | regular | a mesh file (e.g. .vtk) used as a static mesh\n"
+  "  --mesh MODE            dynamic (default) | regular | a mesh file (.vtk, .vtu) used as a static mesh\n"
   "  --regular-size n       nodes per axis of the regular mesh, at least 3 (default round(N^(1/dim)))\n"
   "  --lambda V, --mu V     Lame parameters of the elastic regulariser (default 1, 1)\n"
   "  --energy-ratio R       beta is set at iteration 1 so that beta R / D = R (default 0.02, paper 5.1)\n"
@@ -303,6 +309,129 @@ ParseArguments(int argc, char * argv[])
 }
 
 using dmrtools::ImageDimensionOf;
+
+/** True when the file is a legacy VTK file of an unstructured grid (what ITK's mesh reader cannot read). */
+bool
+IsLegacyUnstructuredGrid(const std::string & path)
+{
+  std::ifstream in(path);
+  std::string   line;
+  for (int k = 0; k < 4 && std::getline(in, line); ++k)
+  {
+    if (line.rfind("DATASET", 0) == 0)
+    {
+      return line.find("UNSTRUCTURED_GRID") != std::string::npos;
+    }
+  }
+  return false;
+}
+
+/** Reads a VTK unstructured grid (XML .vtu, as this tool writes its meshes, or legacy .vtk) into a mesh of triangles
+ * (2D: every z must be 0) or tetrahedra (3D); cells of other types are left out. VTK's messages are caught and
+ * thrown as one std::runtime_error. */
+template <unsigned int D, typename TMesh>
+typename TMesh::Pointer
+ReadUnstructuredGrid(const std::string & path, bool xml)
+{
+#ifdef DMR_WITH_VTK
+  std::string errors;
+  auto        onError = vtkSmartPointer<vtkCallbackCommand>::New();
+  onError->SetClientData(&errors);
+  onError->SetCallback([](vtkObject *, unsigned long, void * data, void * message) {
+    // VTK's text: "ERROR: In FILE, line N\nCLASS (ADDRESS): MESSAGE\n\n"; keep the first MESSAGE
+    auto & text = *static_cast<std::string *>(data);
+    if (text.empty() && message)
+    {
+      std::string       full = static_cast<const char *>(message);
+      const std::size_t colon = full.find("): ");
+      full = colon == std::string::npos ? full : full.substr(colon + 3);
+      text = full.substr(0, full.find('\n'));
+      text = text.empty() ? "VTK could not read the file" : text;
+    }
+  });
+  // no VTK messages on the terminal (the tool's errors are one line): the reader's reach onError, those of the objects
+  // it uses (its XML parser, the pipeline's executive) are dropped; VTK's logger stays quiet for the rest of the run
+  struct QuietVTK
+  {
+    vtkOutputWindow * window = vtkOutputWindow::GetInstance();
+    int               mode = window->GetDisplayMode();
+    QuietVTK()
+    {
+      window->SetDisplayModeToNever();
+      vtkLogger::SetStderrVerbosity(vtkLogger::VERBOSITY_OFF); // VTK 9 logs the same messages through its logger
+    }
+    ~QuietVTK() { window->SetDisplayMode(mode); }
+  } quiet;
+  vtkSmartPointer<vtkUnstructuredGrid> grid;
+  if (xml)
+  {
+    auto reader = vtkSmartPointer<vtkXMLUnstructuredGridReader>::New();
+    reader->AddObserver(vtkCommand::ErrorEvent, onError);
+    reader->AddObserver(vtkCommand::WarningEvent, onError);
+    reader->SetFileName(path.c_str());
+    reader->Update();
+    grid = reader->GetOutput();
+  }
+  else
+  {
+    auto reader = vtkSmartPointer<vtkUnstructuredGridReader>::New();
+    reader->AddObserver(vtkCommand::ErrorEvent, onError);
+    reader->AddObserver(vtkCommand::WarningEvent, onError);
+    reader->SetFileName(path.c_str());
+    reader->Update();
+    grid = reader->GetOutput();
+  }
+  if (!errors.empty())
+  {
+    throw std::runtime_error(errors);
+  }
+  if (!grid || grid->GetNumberOfPoints() == 0)
+  {
+    throw std::runtime_error("no points in the unstructured grid");
+  }
+  auto mesh = TMesh::New();
+  for (vtkIdType i = 0; i < grid->GetNumberOfPoints(); ++i)
+  {
+    double xyz[3];
+    grid->GetPoint(i, xyz);
+    if (D == 2 && std::abs(xyz[2]) > 1e-9)
+    {
+      throw std::runtime_error("point " + std::to_string(i) + " has z != 0: not a 2D mesh");
+    }
+    typename TMesh::PointType p;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      p[k] = xyz[k];
+    }
+    mesh->SetPoint(static_cast<typename TMesh::PointIdentifier>(i), p);
+  }
+  using CellType = typename TMesh::CellType;
+  using SimplexCellType = std::conditional_t<D == 2, itk::TriangleCell<CellType>, itk::TetrahedronCell<CellType>>;
+  const int                      simplex = D == 2 ? VTK_TRIANGLE : VTK_TETRA;
+  typename TMesh::CellIdentifier id = 0;
+  for (vtkIdType c = 0; c < grid->GetNumberOfCells(); ++c)
+  {
+    if (grid->GetCellType(c) != simplex)
+    {
+      continue;
+    }
+    vtkIdType         n = 0;
+    const vtkIdType * ids = nullptr;
+    grid->GetCellPoints(c, n, ids);
+    typename CellType::CellAutoPointer cell;
+    cell.TakeOwnership(new SimplexCellType);
+    for (vtkIdType k = 0; k < n; ++k)
+    {
+      cell->SetPointId(static_cast<unsigned int>(k), static_cast<typename TMesh::PointIdentifier>(ids[k]));
+    }
+    mesh->SetCell(id++, cell);
+  }
+  return mesh;
+#else
+  (void)xml;
+  throw std::runtime_error("this build reads VTK unstructured grids only with VTK (DMR_USE_VTK): " + path);
+#endif
+}
 
 template <unsigned int D, typename TMesh>
 void
@@ -671,7 +800,17 @@ Run(const Options & opt)
     typename MeshType::Pointer mesh;
     try
     {
-      mesh = dmrtools::ReadMeshFile<MeshType>(opt.mesh);
+      // ITK reads legacy VTK polydata; VTK reads unstructured grids (the tool's own .vtu meshes, tetrahedral meshes)
+      const std::string extension =
+        itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(opt.mesh));
+      if (extension == ".vtu" || (extension == ".vtk" && IsLegacyUnstructuredGrid(opt.mesh)))
+      {
+        mesh = ReadUnstructuredGrid<D, MeshType>(opt.mesh, extension == ".vtu");
+      }
+      else
+      {
+        mesh = dmrtools::ReadMeshFile<MeshType>(opt.mesh);
+      }
     }
     catch (const itk::ExceptionObject & e)
     {

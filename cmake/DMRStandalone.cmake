@@ -22,9 +22,9 @@ find_package(CGAL 5.5 REQUIRED)
 find_package(TetGen REQUIRED)
 
 option(DMR_BUILD_EXAMPLES "Build the command-line tools in Examples/" ON)
-find_package(VTK 9.1 QUIET COMPONENTS CommonCore CommonDataModel IOXML)
+find_package(VTK 9.1 QUIET COMPONENTS CommonCore CommonDataModel IOXML IOLegacy)
 include(CMakeDependentOption)
-cmake_dependent_option(DMR_USE_VTK "Write meshes as VTK XML (.vtu/.pvd) through VTK" ON "VTK_FOUND" OFF)
+cmake_dependent_option(DMR_USE_VTK "Write meshes as VTK XML (.vtu/.pvd) and read unstructured-grid meshes through VTK" ON "VTK_FOUND" OFF)
 
 set(CMAKE_RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/bin)
 set(CMAKE_LIBRARY_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/lib)

@@ -267,6 +267,43 @@ run-fidelity)
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 static 30
   ;;
+run-unstructured-grid-mesh)
+  # VTK unstructured grids as static meshes: the tool's own .vtu mesh of an earlier run (2D), a legacy .vtk of tetrahedra
+  first="$W/first"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$first" --nodes 30 --iterations 3 \
+    --threads 2
+  check "first run exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  points=$(sed -n 's/.*NumberOfPoints="\([0-9]*\)".*/\1/p' "$first/mesh_0003.vtu" | head -n 1)
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 5 \
+    --threads 2 --mesh "$first/mesh_0003.vtu"
+  cat "$W/stdout" "$W/stderr"
+  check "registration on the .vtu mesh exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 5 static 30
+  check "the static mesh has the .vtu's $points nodes ($(json_number "$out/report.json" final_mesh_nodes))" \
+    test "$(json_number "$out/report.json" final_mesh_nodes)" = "$points"
+  check "make a 16x12x10 fixed volume" "$CHECK" make-3d "$W/f3.nii.gz"
+  check "make a moving volume" "$CHECK" make-3d "$W/m3.nii.gz" 1
+  # the box [0,15] x [0,11] x [0,9] mm: 12 tetrahedra from the faces' triangles to one inner node
+  {
+    printf '%s\n' "# vtk DataFile Version 3.0" "box" "ASCII" "DATASET UNSTRUCTURED_GRID" "POINTS 9 double"
+    printf '%s\n' "0 0 0" "15 0 0" "0 11 0" "15 11 0" "0 0 9" "15 0 9" "0 11 9" "15 11 9" "7.8 5.3 4.6"
+    printf '%s\n' "CELLS 12 60" "4 0 1 3 8" "4 0 3 2 8" "4 4 7 5 8" "4 4 6 7 8" "4 0 5 1 8" "4 0 4 5 8" \
+      "4 2 3 7 8" "4 2 7 6 8" "4 0 2 6 8" "4 0 6 4 8" "4 1 5 7 8" "4 1 7 3 8" "CELL_TYPES 12"
+    for _ in $(seq 12); do echo 10; done
+  } >"$W/box.vtk"
+  out3="$W/out3"
+  run_reg --fixed "$W/f3.nii.gz" --moving "$W/m3.nii.gz" --output-dir "$out3" --iterations 5 --threads 2 \
+    --mesh "$W/box.vtk"
+  cat "$W/stdout" "$W/stderr"
+  check "registration on the legacy .vtk tetrahedra exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check "the static mesh has the file's 9 nodes" test "$(json_number "$out3/report.json" final_mesh_nodes)" = 9
+  ssd0=$(json_number "$out3/report.json" ssd_initial); ssd1=$(json_number "$out3/report.json" ssd_final)
+  check "SSD falls ($ssd0 -> $ssd1)" awk_true "$ssd1 < $ssd0"
+  ;;
 run-png)
   # 2D PNG inputs (unsigned char): the tools read PNG, JPEG, TIFF, BMP, NRRD, ... besides NIfTI and MetaImage
   check "make a PNG fixed image" "$CHECK" make-2d-byte "$W/fixed.png"
@@ -380,6 +417,11 @@ bad-thin-image)
   check "a usage error: exit code 2 (got $RC)" test "$RC" -eq 2
   check "the message names the axis ($(cat "$W/stderr"))" \
     grep -q "error: FEMRegistrationMethod: the fixed image needs at least 4 pixels along every axis; axis 2 has 3" "$W/stderr"
+  ;;
+bad-mesh-not-vtk-xml)
+  echo "<VTKFile type=\"UnstructuredGrid\"><Piece" >"$W/broken.vtu"
+  expect_bad_input broken-vtu --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations 2 \
+    --mesh "$W/broken.vtu"
   ;;
 bad-mesh-without-free-node)
   # border nodes are fixed: a regular mesh of 2 nodes per axis, or a static mesh with only border nodes, moves nothing
