@@ -294,6 +294,7 @@ ParallelForChunkIds(MultiThreaderBase * threader, size_t numberOfChunks, TBody &
   threader->ParallelizeArray(
     0, numberOfChunks, [&](SizeValueType c) { body(static_cast<size_t>(c)); }, nullptr);
 }
+
 /** Why `image` does not lie on the grid of `reference` (the same largest region, start and size, and the same origin,
  * spacing and direction), or an empty string when it does. Origin and spacing are compared to coordinateTolerance x
  * the reference's first spacing, the direction to directionTolerance: ImageToImageFilter's rule. For inputs that are
