@@ -704,3 +704,35 @@ TEST(DualMeshFilter3D, SymmetricCellsAreNudgedOffFlatTetrahedra)
   }
 }
 } // namespace
+
+// The density -> CVT -> dual mesh pipeline on the same volume indexed from another start (as CropImageFilter leaves
+// it): the same labels, the same mesh points in physical space.
+TEST(DualMeshFilter3D, RegionThatDoesNotStartAtZeroGivesTheSameMesh)
+{
+  using ImageType = itk::Image<float, 3>;
+  const auto & reference = Phantom();
+  auto         density = ImageType::New();
+  density->Graft(reference.density);
+  ImageType::IndexType start;
+  start[0] = 5;
+  start[1] = -2;
+  start[2] = 3;
+  itk::dmr::test::ShiftRegionStart(density.GetPointer(), start);
+  const itk::dmr::test::DualMeshPhantom3D shifted(density, 200);
+  const auto *                            a = reference.cvt->GetOutput();
+  const auto *                            b = shifted.cvt->GetOutput();
+  ASSERT_EQ(b->GetLargestPossibleRegion(), density->GetLargestPossibleRegion());
+  EXPECT_TRUE(std::equal(a->GetBufferPointer(),
+                         a->GetBufferPointer() + a->GetLargestPossibleRegion().GetNumberOfPixels(),
+                         b->GetBufferPointer()));
+  const auto * meshA = reference.dual->GetOutput();
+  const auto * meshB = shifted.dual->GetOutput();
+  ASSERT_EQ(meshB->GetNumberOfPoints(), meshA->GetNumberOfPoints());
+  ASSERT_EQ(meshB->GetNumberOfCells(), meshA->GetNumberOfCells());
+  double largest = 0.0;
+  for (itk::IdentifierType i = 0; i < meshA->GetNumberOfPoints(); ++i)
+  {
+    largest = std::max(largest, meshA->GetPoint(i).EuclideanDistanceTo(meshB->GetPoint(i)));
+  }
+  EXPECT_LT(largest, 1e-9);
+}
