@@ -362,25 +362,15 @@ ReadUnstructuredGrid(const std::string & path, bool xml)
     }
     ~QuietVTK() { window->SetDisplayMode(mode); }
   } quiet;
-  vtkSmartPointer<vtkUnstructuredGrid> grid;
-  if (xml)
-  {
-    auto reader = vtkSmartPointer<vtkXMLUnstructuredGridReader>::New();
+  auto read = [&](auto reader) {
     reader->AddObserver(vtkCommand::ErrorEvent, onError);
     reader->AddObserver(vtkCommand::WarningEvent, onError);
     reader->SetFileName(path.c_str());
     reader->Update();
-    grid = reader->GetOutput();
-  }
-  else
-  {
-    auto reader = vtkSmartPointer<vtkUnstructuredGridReader>::New();
-    reader->AddObserver(vtkCommand::ErrorEvent, onError);
-    reader->AddObserver(vtkCommand::WarningEvent, onError);
-    reader->SetFileName(path.c_str());
-    reader->Update();
-    grid = reader->GetOutput();
-  }
+    return vtkSmartPointer<vtkUnstructuredGrid>(reader->GetOutput());
+  };
+  const vtkSmartPointer<vtkUnstructuredGrid> grid = xml ? read(vtkSmartPointer<vtkXMLUnstructuredGridReader>::New())
+                                                        : read(vtkSmartPointer<vtkUnstructuredGridReader>::New());
   if (!errors.empty())
   {
     throw std::runtime_error(errors);
