@@ -438,6 +438,7 @@ bad-mesh-without-free-node)
     grep -q "RegularGridSize (2) must be 0 (from NumberOfNodes) or at least 3" "$W/stderr"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-corners" \
     --mesh "$W/corners.vtk" --iterations 2
+  check "corner mesh: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
   check "the message says why ($(cat "$W/stderr"))" \
     grep -q "the static mesh has no free node: all its 4 nodes lie on the border" "$W/stderr"
   ;;

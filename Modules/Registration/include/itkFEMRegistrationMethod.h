@@ -285,6 +285,9 @@ private:
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
   void
   BuildStaticMesh();
+  /** Throws when every node of the mesh is fixed (on the image border): such a mesh cannot move anything. */
+  void
+  CheckStaticMeshHasAFreeNode(const SimplexMeshType & mesh) const;
   /** Nodes per axis of the Regular mesh on the fixed image's grid. */
   std::array<size_t, ImageDimension>
   RegularNodesPerAxis() const;

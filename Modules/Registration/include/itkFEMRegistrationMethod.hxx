@@ -154,6 +154,13 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
       }
     }
   }
+  // a static mesh whose data is already there (not the output of a reader that has not run) is checked now, so that a
+  // caller learns of a mesh that cannot work before anything runs; otherwise when it is read (BuildStaticMesh)
+  const MeshType * staticMesh = this->GetStaticMesh();
+  if (m_MeshMode == MeshModeEnum::Static && staticMesh != nullptr && staticMesh->GetNumberOfPoints() > 0)
+  {
+    this->CheckStaticMeshHasAFreeNode(dmr::FromItkMesh<ImageDimension>(staticMesh, this->GetFixedImage()));
+  }
   // the mask is read pixel for pixel with the fixed image (the moving image may lie on any grid)
   if (const MaskImageType * mask = this->GetFixedMask())
   {
@@ -548,17 +555,22 @@ FEMRegistrationMethod<TF, TM, TD>::BuildStaticMesh()
   else
   {
     m_StaticSimplexMesh = dmr::FromItkMesh<D>(this->GetStaticMesh(), this->GetFixedImage());
-    if (std::find(m_StaticSimplexMesh.fixed.begin(), m_StaticSimplexMesh.fixed.end(), 0) ==
-        m_StaticSimplexMesh.fixed.end())
-    {
-      itkExceptionMacro("the static mesh has no free node: all its "
-                        << m_StaticSimplexMesh.NumberOfNodes()
-                        << " nodes lie on the border of the image, where "
-                           "the displacement is fixed, so nothing can move");
-    }
+    this->CheckStaticMeshHasAFreeNode(m_StaticSimplexMesh);
   }
   m_CurrentMesh = &m_StaticSimplexMesh;
   m_Timing.meshConstruction += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::CheckStaticMeshHasAFreeNode(const SimplexMeshType & mesh) const
+{
+  if (std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
+  {
+    itkExceptionMacro("the static mesh has no free node: all its "
+                      << mesh.NumberOfNodes()
+                      << " nodes lie on the border of the image, where the displacement is fixed, so nothing can move");
+  }
 }
 
 template <typename TF, typename TM, typename TD>
