@@ -163,6 +163,20 @@ ParseReal(const std::string & flag, const std::string & value)
   return v;
 }
 
+/** The directory --report names (absolute). */
+std::string
+ReportDirectory(const Options & opt)
+{
+  return itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
+}
+
+/** True when --report names a file in the output directory (which the tool creates and commits its outputs to). */
+bool
+ReportInOutputDirectory(const Options & opt)
+{
+  return !opt.outputDir.empty() && ReportDirectory(opt) == itksys::SystemTools::CollapseFullPath(opt.outputDir);
+}
+
 Options
 ParseArguments(int argc, char * argv[])
 {
@@ -297,10 +311,9 @@ ParseArguments(int argc, char * argv[])
   }
   if (!opt.report.empty())
   {
-    const std::string dir = itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
     // the output directory may not exist yet: the tool creates it
-    const bool inOutputDir = !opt.outputDir.empty() && dir == itksys::SystemTools::CollapseFullPath(opt.outputDir);
-    if (!inOutputDir && !itksys::SystemTools::FileIsDirectory(dir))
+    const std::string dir = ReportDirectory(opt);
+    if (!ReportInOutputDirectory(opt) && !itksys::SystemTools::FileIsDirectory(dir))
       throw UsageError("--report: no such directory: " + dir);
     if (itksys::SystemTools::FileIsDirectory(opt.report))
       throw UsageError("--report names a directory: " + opt.report);
@@ -1010,10 +1023,8 @@ Run(const Options & opt)
   {
     // written before the outputs are committed, so a failure here leaves nothing behind in the output directory; a
     // report inside the output directory is staged and committed with the outputs
-    const std::string reportDir =
-      itksys::SystemTools::GetFilenamePath(itksys::SystemTools::CollapseFullPath(opt.report));
-    const bool    staged = reportDir == itksys::SystemTools::CollapseFullPath(opt.outputDir);
-    std::ofstream out(staged ? staging.Path(itksys::SystemTools::GetFilenameName(opt.report)) : opt.report);
+    std::ofstream out(ReportInOutputDirectory(opt) ? staging.Path(itksys::SystemTools::GetFilenameName(opt.report))
+                                                   : opt.report);
     out << json.str();
     if (!out)
     {
