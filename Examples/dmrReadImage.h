@@ -29,6 +29,14 @@
 #include "itkImageSeriesReader.h"
 #include "itkMacro.h"
 #include "itkImageIOFactory.h"
+#include "itkBuildInformation.h"
+#include "itkFloatingPointExceptions.h"
+#include "itkMersenneTwisterRandomVariateGenerator.h"
+#include "itkMetaImageIO.h"
+#include "itkMultiThreaderBase.h"
+#include "itkObjectFactoryBase.h"
+#include "itkOutputWindow.h"
+#include "itkTimeStamp.h"
 #include "itk_zlib.h"
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
@@ -38,6 +46,27 @@
 
 namespace dmrtools
 {
+/** Creates ITK's process-wide globals on the calling thread. ITK 5.2 creates each of them on first use and registers
+ * it in the std::map of itk::SingletonIndex without a lock, so two threads that first use ITK side by side (the tool
+ * reads its inputs on threads) can corrupt the map: runs crashed, or hung at exit in ~SingletonIndex. Call this on the
+ * main thread, after any change of the global number of threads, before starting threads that run ITK code. These are
+ * all the globals of the ITK 5.2 libraries the tools link (`nm -D` of each for itk::Singleton; ITKFFT's FFTW
+ * configuration is not linked); the test ExampleItkGlobalsOnMainThread checks that none is left to a reader thread. */
+inline void
+InitializeItkGlobals()
+{
+  itk::TimeStamp().Modified();                      // GlobalTimeStamp
+  itk::ObjectFactoryBase::GetRegisteredFactories(); // ObjectFactoryBase
+  itk::Object::GetGlobalWarningDisplay();           // GlobalWarningDisplay
+  itk::DataObject::GetGlobalReleaseDataFlag();      // GlobalReleaseDataFlag
+  itk::MultiThreaderBase::New();                    // MultiThreaderBase, and ThreadPool for the pool threader
+  itk::OutputWindow::GetInstance();                 // OutputWindow
+  itk::FloatingPointExceptions::GetEnabled();       // ExceptionGlobals
+  itk::MetaImageIO::GetDefaultDoublePrecision();    // DefaultDoublePrecision
+  itk::Statistics::MersenneTwisterRandomVariateGenerator::GetInstance(); // MersenneTwisterGlobals
+  itk::BuildInformation::GetInstance();                                  // BuildInformationGlobals
+}
+
 /** Slice files of the first DICOM series in directory, ordered by position; throws when there is none. */
 inline std::vector<std::string>
 DicomSeriesFileNames(const std::string & directory)

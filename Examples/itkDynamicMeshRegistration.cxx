@@ -1050,6 +1050,7 @@ main(int argc, char * argv[])
     {
       itk::MultiThreaderBase::SetGlobalDefaultNumberOfThreads(static_cast<itk::ThreadIdType>(opt.threads));
     }
+    dmrtools::InitializeItkGlobals(); // before the inputs are read on threads
     const unsigned int dFixed = ImageDimensionOf(opt.fixed);
     const unsigned int dMoving = ImageDimensionOf(opt.moving);
     if (dFixed != dMoving)

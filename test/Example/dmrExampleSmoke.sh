@@ -55,12 +55,15 @@ export ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=2
 # run REG with the given arguments; stdout/stderr/exit code in $W/{stdout,stderr} and $RC
 # (under `timeout` where available, so that a hang fails the test with a message instead of the ctest TIMEOUT)
 run_reg() {
+  # REG_PRELOAD: a library preloaded into REG only (not into `timeout`)
+  local preload=()
+  [ -z "${REG_PRELOAD:-}" ] || preload=(env "LD_PRELOAD=$REG_PRELOAD")
   if command -v timeout >/dev/null; then
-    timeout 90 "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
+    timeout 90 "${preload[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
     RC=$?
     [ "$RC" -ne 124 ] || echo "itkDynamicMeshRegistration did not finish within 90 s: $*"
   else
-    "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
+    "${preload[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
     RC=$?
   fi
 }
@@ -329,6 +332,26 @@ run-3d-default-nodes)
   check "registration without --nodes exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 2 dynamic 240 3 "$W/fixed3d.nii.gz"
+  ;;
+run-itk-globals)
+  # every ITK global is created on the main thread, also when the tool reads its inputs side by side on threads (ITK
+  # 5.2 registers its globals in an unlocked std::map: a race there crashed or hung runs at exit). The watch library
+  # (dmrItkGlobalsWatch.cxx, preloaded; its path in ITK_GLOBALS_WATCH) ends the tool with exit code 97 otherwise.
+  [ -n "${ITK_GLOBALS_WATCH:-}" ] && [ -f "$ITK_GLOBALS_WATCH" ] || { fail "ITK_GLOBALS_WATCH is not a file"; finish; }
+  check "make a 3D fixed image (MetaImage)" "$CHECK" make-3d "$W/fixed3d.mha"
+  check "make a 3D moving image (MetaImage)" "$CHECK" make-3d "$W/moving3d.mha" 1
+  check "make a 3D mask on a coarser grid" "$CHECK" make-3d-mask "$W/mask3d.nii.gz"
+  run_reg --fixed "$W/fixed3d.mha" --moving "$W/moving3d.mha" --output-dir "$W/out1" --nodes 20 --iterations 2
+  check "a first run for a displacement field exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  # four inputs read side by side: fixed, moving, mask and truth field
+  REG_PRELOAD=$ITK_GLOBALS_WATCH run_reg --fixed "$W/fixed3d.mha" --moving "$W/moving3d.mha" --output-dir "$W/out" \
+    --nodes 20 --iterations 2 --fixed-mask "$W/mask3d.nii.gz" --truth-displacement "$W/out1/displacement.nii.gz"
+  cat "$W/stdout" "$W/stderr"
+  check "the watched run exits 0 (97: a global created on another thread)" test "$RC" = 0
+  check "the watch library was active and saw globals created" \
+    grep -Eq '^itk-globals-watch: [1-9][0-9]* globals, all on the main thread$' "$W/stderr"
+  [ "$RC" = 0 ] && check_run_outputs "$W/out" 2 dynamic 20 3 "$W/fixed3d.mha"
   ;;
 run-3d)
   # a 3D pair with a mask on a coarser grid (resampled onto the fixed grid) and two landmark pairs
