@@ -376,14 +376,15 @@ run-3d)
   rss=$(json_number "$out/report.json" peak_rss_mb)
   check "report: peak_rss_mb is positive ('$rss')" awk_true "${rss:-0} > 0"
   check "report: moving_resampled is false for images on one grid" grep -q '"moving_resampled": false' "$out/report.json"
-  # a moving image on another grid (the coarse mask grid) is resampled onto the fixed grid, not rejected
-  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/mask3d.nii.gz" --output-dir "$W/out-other-grid" --nodes 20 \
+  # a moving image on another grid (the coarse mask grid) is resampled onto the fixed grid, not rejected (100 nodes:
+  # with 20 every cell of this 16 x 12 x 10 volume touches the border, and a mesh without a free node is an error)
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/mask3d.nii.gz" --output-dir "$W/out-other-grid" --nodes 100 \
     --iterations 2 --threads 2
   check "moving image on another grid: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
   check "report: moving_resampled is true" grep -q '"moving_resampled": true' "$W/out-other-grid/report.json"
   check "warped.nii.gz lies on the fixed grid" "$CHECK" same-grid "$W/fixed3d.nii.gz" "$W/out-other-grid/warped.nii.gz"
   # --intensity-window registers windowed copies; warped.nii.gz keeps the moving image's intensities (cube ~1.04-1.09)
-  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-window" --nodes 20 \
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-window" --nodes 100 \
     --iterations 2 --threads 2 --intensity-window 0,0.5
   check "--intensity-window run: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
   dw=$("$DICE" "$W/out-window/warped.nii.gz" "$W/fixed3d.nii.gz" 1.05)
@@ -447,13 +448,16 @@ bad-mesh-not-vtk-xml)
     --mesh "$W/broken.vtu"
   ;;
 bad-mesh-without-free-node)
-  # border nodes are fixed: a regular mesh of 2 nodes per axis, or a static mesh with only border nodes, moves nothing
+  # border nodes are fixed: a regular mesh of 2 nodes per axis, a static mesh with only border nodes or a dynamic mesh
+  # of a few nodes (every cell on the border) moves nothing
   printf '%s\n' "# vtk DataFile Version 3.0" "corners" "ASCII" "DATASET POLYDATA" "POINTS 4 double" "0 0 0" "511 0 0" \
     "511 -511 0" "0 -511 0" "POLYGONS 2 8" "3 0 1 2" "3 0 2 3" >"$W/corners.vtk"
   expect_bad_input regular-size-2 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh regular \
     --regular-size 2 --iterations 2
   expect_bad_input corner-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh "$W/corners.vtk" \
     --iterations 2
+  # a dynamic mesh of 4 nodes: every cell touches the border (seen at the first mesh, after the outputs are staged)
+  expect_bad_input dynamic-4-nodes --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 4 --iterations 2
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-regular" --mesh regular \
     --regular-size 2 --iterations 2
   check "regular size 2: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
@@ -464,6 +468,10 @@ bad-mesh-without-free-node)
   check "corner mesh: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
   check "the message says why ($(cat "$W/stderr"))" \
     grep -q "the static mesh has no free node: all its 4 nodes lie on the border" "$W/stderr"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-4-nodes" --nodes 4 \
+    --iterations 2
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q "the dynamic mesh has no free node: all 4 cells of the tessellation touch the border" "$W/stderr"
   ;;
 bad-constant-image)
   check "make a constant image" "$CHECK" make-constant "$W/constant.nii.gz"

@@ -457,6 +457,14 @@ TEST(FEMRegistrationMethod, BadInputThrows)
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
       cornerMesh, { "the static mesh has no free node: all its 4 nodes lie on the border" }));
   }
+  // a dynamic mesh of few nodes: every cell touches the border, so every node is fixed; found at the first mesh
+  for (const unsigned int nodes : { 4u, 5u })
+  {
+    auto fewNodes = SmallRegistration(MeshMode::Dynamic, 5);
+    fewNodes->SetNumberOfNodes(nodes);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      fewNodes, { "the dynamic mesh has no free node", "all " + std::to_string(nodes) + " cells", "use more nodes" }));
+  }
 
   // a mask is read pixel for pixel with the fixed image: one that is not on its grid is refused, with the reason
   for (const int what : { 0, 1 })

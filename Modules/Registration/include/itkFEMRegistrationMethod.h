@@ -295,7 +295,8 @@ private:
   void
   ConfigureStages();
   /** nodalU = K^-1 nodalForce by solve() (timed as FEM solve); while beta is unset (the first iteration) sets it so
-   * that beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set). */
+   * that beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set) or when a
+   * dynamic mesh after the first has no free node; throws when the first mesh has none. */
   template <typename TSolve>
   bool
   SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd, TSolve && solve);

@@ -355,7 +355,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
           record.solverIterations = m_Solver->GetLastIterations();
         }))
     {
-      // the images already match (no force): nothing to register
+      // the images already match (no force), or a later dynamic mesh has no free node: nothing more to register
       m_History.push_back(record);
       m_Timing.registration += seconds(t0, Clock::now());
       break;
@@ -483,6 +483,22 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
                                                    double                      mssd,
                                                    TSolve &&                   solve)
 {
+  // Border nodes are fixed, so a mesh without a free node cannot move anything. A static or regular mesh is refused
+  // before the run; a dynamic mesh shows it only now: with few nodes every cell of the tessellation may touch the
+  // border. At the first iteration nothing has been registered, so that is an error (not "the images match"); a later
+  // mesh without a free node ends the run with the transformation reached so far, as no step is possible.
+  const SimplexMeshType & mesh = *m_CurrentMesh;
+  if (std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
+  {
+    if (m_CurrentIteration <= 1)
+    {
+      itkExceptionMacro("the dynamic mesh has no free node: all "
+                        << mesh.NumberOfNodes()
+                        << " cells of the tessellation touch the border of the image, where the displacement is "
+                           "fixed, so nothing can move; use more nodes");
+    }
+    return false;
+  }
   const auto t0 = std::chrono::steady_clock::now();
   solve();
   m_Timing.femSolve += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -968,7 +984,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     });
     if (!solved)
     {
-      // the images already match (no force): nothing to register
+      // the images already match (no force), or a later dynamic mesh has no free node: nothing more to register
       m_History.push_back(record);
       m_Timing.registration += seconds(t0, Clock::now());
       break;
