@@ -24,8 +24,12 @@
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
+#include <algorithm>
 #include <cmath>
 #include <limits>
+#include <string>
+#include <thread>
+#include <vector>
 
 namespace
 {
@@ -675,4 +679,87 @@ TEST(FEMRegistrationMethod, MovingImageOnAnotherGrid)
               0.02 * onThreeLevels->GetHistory().front().ssd);
   EXPECT_LT(fineMethod->GetFinalSSD(), 0.7 * fineMethod->GetHistory().front().ssd);
   EXPECT_NEAR(fineMethod->GetFinalSSD(), onThreeLevels->GetFinalSSD(), 0.25 * onThreeLevels->GetFinalSSD());
+}
+
+// Registrations of a batch pipeline may run side by side on threads of one process: they share no state (the TetGen
+// runs of 3D meshes are serialised inside the library), so each gives, bit for bit, what it gives alone. ITK's own
+// globals are created on first use without a lock (see the tools' dmrtools::InitializeItkGlobals), so the sequential
+// runs come first, on this thread.
+TEST(FEMRegistrationMethod, ConcurrentRegistrationsGiveTheirSequentialResults)
+{
+  using Image3DType = itk::Image<float, 3>;
+  using Method3DType = itk::FEMRegistrationMethod<Image3DType, Image3DType>;
+  auto blob3D = [](double cx, double rx) {
+    auto image = Image3DType::New();
+    image->SetRegions(Image3DType::SizeType{ { 24, 22, 20 } });
+    image->Allocate();
+    for (unsigned int z = 0; z < 20; ++z)
+    {
+      for (unsigned int y = 0; y < 22; ++y)
+      {
+        for (unsigned int x = 0; x < 24; ++x)
+        {
+          const double r =
+            std::sqrt(std::pow((x - cx) / rx, 2) + std::pow((y - 11.0) / 6.0, 2) + std::pow((z - 10.0) / 5.0, 2));
+          image->SetPixel({ { x, y, z } }, static_cast<float>(1.0 / (1.0 + std::exp((r - 1.0) * 6.0))));
+        }
+      }
+    }
+    return image;
+  };
+  auto run2D = [](int which) {
+    auto method = SmallRegistration(which == 1 ? MeshMode::Regular : MeshMode::Dynamic, 15);
+    if (which == 2)
+    {
+      method->SetMovingImage(Blob(64, 56, 28, 30, 14, 10));
+      method->SetNumberOfNodes(45);
+    }
+    method->Update();
+    return std::vector<float>(method->GetDisplacementField()->GetBufferPointer()->GetDataPointer(),
+                              method->GetDisplacementField()->GetBufferPointer()->GetDataPointer() + 64 * 56 * 2);
+  };
+  auto run3D = [&blob3D](int which) {
+    auto method = Method3DType::New();
+    method->SetFixedImage(blob3D(11.0, 6.0));
+    method->SetMovingImage(which == 0 ? blob3D(12.5, 5.0) : blob3D(10.0, 7.0));
+    method->SetNumberOfNodes(150);
+    method->SetNumberOfIterations(8);
+    method->Update();
+    const auto * u = method->GetDisplacementField()->GetBufferPointer()->GetDataPointer();
+    return std::vector<float>(u, u + 24 * 22 * 20 * 3);
+  };
+  constexpr int                   runs = 5; // three 2D runs and two 3D runs
+  std::vector<std::vector<float>> alone(runs), together(runs);
+  auto                            runOne = [&](int i) { return i < 3 ? run2D(i) : run3D(i - 3); };
+  for (int i = 0; i < runs; ++i)
+  {
+    alone[i] = runOne(i);
+  }
+  std::vector<std::thread> threads;
+  std::vector<std::string> errors(runs);
+  for (int i = 0; i < runs; ++i)
+  {
+    threads.emplace_back([&, i] {
+      try
+      {
+        together[i] = runOne(i);
+      }
+      catch (const std::exception & e)
+      {
+        errors[i] = e.what();
+      }
+    });
+  }
+  for (auto & t : threads)
+  {
+    t.join();
+  }
+  for (int i = 0; i < runs; ++i)
+  {
+    EXPECT_EQ(errors[i], "") << "run " << i;
+    const float maxU = std::abs(
+      *std::max_element(alone[i].begin(), alone[i].end(), [](float a, float b) { return std::abs(a) < std::abs(b); }));
+    EXPECT_GT(maxU, 0.05f) << "run " << i << " did not register";
+    EXPECT_TRUE(alone[i] == together[i]) << "run " << i << " differs when run beside the others";
+  }
 }
