@@ -38,6 +38,7 @@
 #include "itkOutputWindow.h"
 #include "itkTimeStamp.h"
 #include "itk_zlib.h"
+#include "dmrImageFileCheck.h"
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
 #include <future>
@@ -108,8 +109,9 @@ GzipStreamIsComplete(const std::string & path)
 
 /** The image at path: a DICOM series when path is a directory, otherwise any file ITK can read. A .gz file is
  * checked to its trailer (GzipStreamIsComplete) on another thread while ITK reads it, so a truncated file is an
- * error and the check costs no extra time. Throws itk::ExceptionObject on failure (missing path, unknown format,
- * empty directory, truncated or corrupt compressed file). */
+ * error and the check costs no extra time; uncompressed NIfTI, MetaImage and VTK files, PNG, JPEG and BMP files are
+ * checked against the sizes their headers give (dmrImageFileCheck.h). Throws itk::ExceptionObject on failure (missing
+ * path, unknown format, empty directory, truncated or corrupt file). */
 template <typename TImage>
 typename TImage::Pointer
 ReadImageOrDicomSeries(const std::string & path)
@@ -131,8 +133,11 @@ ReadImageOrDicomSeries(const std::string & path)
   {
     complete = std::async(std::launch::async, [path] { return GzipStreamIsComplete(path); });
   }
+  CheckEncodedImageFileIsComplete(path);
   auto reader = itk::ImageFileReader<TImage>::New();
   reader->SetFileName(path);
+  reader->UpdateOutputInformation(); // the header: is the pixel data all there?
+  CheckRawPixelDataIsComplete(path, reader->GetImageIO());
   reader->Update(); // on an exception, the future's destructor waits for the check
   if (complete.valid() && !complete.get())
   {
@@ -142,8 +147,9 @@ ReadImageOrDicomSeries(const std::string & path)
   return reader->GetOutput();
 }
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
- * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Reads the header only (a
- * truncated .gz file is found by ReadImageOrDicomSeries). Throws UsageError (bad input) otherwise. */
+ * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Reads the header only, and
+ * checks the file's length where the format allows (a truncated .gz file is found by ReadImageOrDicomSeries). Throws
+ * UsageError (bad input) otherwise. */
 inline unsigned int
 ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
 {
@@ -171,6 +177,18 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
     throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
   }
   io->SetFileName(path);
+  // a short file: the checks' messages name the file
+  auto checked = [](auto && check) {
+    try
+    {
+      check();
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError(e.GetDescription());
+    }
+  };
+  checked([&] { CheckEncodedImageFileIsComplete(path); }); // before the header read: libpng aborts on some short files
   try
   {
     io->ReadImageInformation();
@@ -179,6 +197,7 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
   {
     throw UsageError("cannot read an image from " + path + ": " + e.GetDescription());
   }
+  checked([&] { CheckRawPixelDataIsComplete(path, io); });
   if (components)
   {
     *components = io->GetNumberOfComponents();

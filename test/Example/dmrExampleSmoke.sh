@@ -526,6 +526,14 @@ bad-truncated-image)
   # found while ITK reads the file (the check runs beside the read): also for the mask
   expect_bad_input truncated-mask --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
     --iterations 2 --fixed-mask "$W/truncated.nii.gz"
+  # uncompressed files that end early (ITK read them as far as they went) and a PNG cut in its first chunks (libpng
+  # aborted the process)
+  gzip -dc "$DATA/fixed.nii.gz" | head -c 200000 >"$W/truncated.nii"
+  expect_bad_input truncated-nii --fixed "$W/truncated.nii" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2
+  check "make a PNG image" "$CHECK" make-2d-byte "$W/whole.png"
+  head -c 40 "$W/whole.png" >"$W/truncated.png"
+  rm -f "$W/whole.png"
+  expect_bad_input truncated-png --fixed "$W/truncated.png" --moving "$W/truncated.png" --nodes 30 --iterations 2
   ;;
 bad-empty-directory)
   mkdir -p "$W/empty-dicom-dir"

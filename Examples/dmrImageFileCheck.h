@@ -1,0 +1,357 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrImageFileCheck_h
+#define dmrImageFileCheck_h
+
+// Is an image file whole? ITK 5.2's readers do not all notice a file that ends early: an uncompressed NIfTI,
+// MetaImage or VTK file, a JPEG or a BMP is read as far as it goes and the rest left as it was (zeros or garbage), and
+// a PNG cut within its first chunks makes libpng abort the process. The tools check these formats themselves, from the
+// sizes their headers give, and refuse a short file with one line. (A .gz file is checked to its trailer separately;
+// NRRD and TIFF files that end early are errors in ITK already.)
+#include "itkImageIOBase.h"
+#include "itkMacro.h"
+#include "itksys/SystemTools.hxx"
+#include <algorithm>
+#include <cctype>
+#include <cstdint>
+#include <cstring>
+#include <fstream>
+#include <string>
+
+namespace dmrtools
+{
+namespace detail
+{
+[[noreturn]] inline void
+ThrowTruncated(const std::string & path, const std::string & why)
+{
+  throw itk::ExceptionObject(
+    __FILE__, __LINE__, path + ": the file is truncated or corrupt (" + why + ")", ITK_LOCATION);
+}
+
+inline uint64_t
+FileSize(const std::string & path)
+{
+  return static_cast<uint64_t>(itksys::SystemTools::FileLength(path));
+}
+
+inline std::string
+Head(const std::string & path, size_t bytes)
+{
+  std::ifstream in(path, std::ios::binary);
+  std::string   head(bytes, '\0');
+  in.read(&head[0], static_cast<std::streamsize>(bytes));
+  head.resize(static_cast<size_t>(std::max<std::streamsize>(0, in.gcount())));
+  return head;
+}
+
+inline uint32_t
+BigEndian32(const unsigned char * p)
+{
+  return (uint32_t{ p[0] } << 24) | (uint32_t{ p[1] } << 16) | (uint32_t{ p[2] } << 8) | uint32_t{ p[3] };
+}
+
+inline uint32_t
+LittleEndian32(const unsigned char * p)
+{
+  return uint32_t{ p[0] } | (uint32_t{ p[1] } << 8) | (uint32_t{ p[2] } << 16) | (uint32_t{ p[3] } << 24);
+}
+
+/** PNG: the chunks (length, type, data, CRC) must follow each other to the end of an IEND chunk. */
+inline void
+CheckPng(const std::string & path)
+{
+  std::ifstream  in(path, std::ios::binary);
+  const uint64_t size = FileSize(path);
+  uint64_t       at = 8; // after the signature
+  for (;;)
+  {
+    unsigned char chunk[8];
+    in.seekg(static_cast<std::streamoff>(at));
+    if (at + 12 > size || !in.read(reinterpret_cast<char *>(chunk), 8))
+    {
+      ThrowTruncated(path, "a PNG file must end with an IEND chunk");
+    }
+    const uint64_t length = BigEndian32(chunk);
+    if (at + 12 + length > size)
+    {
+      ThrowTruncated(path, "a PNG chunk at byte " + std::to_string(at) + " ends after the end of the file");
+    }
+    if (std::memcmp(chunk + 4, "IEND", 4) == 0)
+    {
+      return;
+    }
+    at += 12 + length;
+  }
+}
+
+/** JPEG: the last marker is EOI (FF D9); trailing zero bytes or line breaks are tolerated. */
+inline void
+CheckJpeg(const std::string & path)
+{
+  const uint64_t size = FileSize(path);
+  std::ifstream  in(path, std::ios::binary);
+  const uint64_t tail = std::min<uint64_t>(size, 4096);
+  std::string    end(static_cast<size_t>(tail), '\0');
+  in.seekg(static_cast<std::streamoff>(size - tail));
+  in.read(&end[0], static_cast<std::streamsize>(tail));
+  while (!end.empty() && (end.back() == '\0' || end.back() == '\n' || end.back() == '\r'))
+  {
+    end.pop_back();
+  }
+  if (end.size() < 2 || static_cast<unsigned char>(end[end.size() - 2]) != 0xFF ||
+      static_cast<unsigned char>(end.back()) != 0xD9)
+  {
+    ThrowTruncated(path, "a JPEG file must end with the end-of-image marker");
+  }
+}
+
+/** BMP without compression (BI_RGB, BI_BITFIELDS): the rows (padded to 4 bytes) from the pixel-data offset. */
+inline void
+CheckBmp(const std::string & path, const std::string & head)
+{
+  if (head.size() < 34)
+  {
+    ThrowTruncated(path, "shorter than a BMP header");
+  }
+  const auto *   h = reinterpret_cast<const unsigned char *>(head.data());
+  const uint64_t offset = LittleEndian32(h + 10);
+  const int64_t  width = static_cast<int32_t>(LittleEndian32(h + 18));
+  const int64_t  height = static_cast<int32_t>(LittleEndian32(h + 22));
+  const unsigned bits = h[28] | (h[29] << 8);
+  const uint32_t compression = LittleEndian32(h + 30);
+  if (LittleEndian32(h + 14) < 40 || (compression != 0 && compression != 3) || width <= 0 || bits == 0)
+  {
+    return; // an old or compressed variant: left to the reader
+  }
+  const uint64_t row = (static_cast<uint64_t>(width) * bits + 31) / 32 * 4;
+  const uint64_t needed = offset + row * static_cast<uint64_t>(height < 0 ? -height : height);
+  if (FileSize(path) < needed)
+  {
+    ThrowTruncated(path,
+                   "its BMP header describes " + std::to_string(needed) + " bytes, the file has " +
+                     std::to_string(FileSize(path)));
+  }
+}
+
+inline void
+RequireBytes(const std::string & dataPath, uint64_t offset, uint64_t bytes, const std::string & path)
+{
+  if (!itksys::SystemTools::FileExists(dataPath) || FileSize(dataPath) < offset + bytes)
+  {
+    ThrowTruncated(path,
+                   "its header describes " + std::to_string(bytes) + " bytes of pixel data from byte " +
+                     std::to_string(offset) + (dataPath == path ? "" : " of " + dataPath) + ", the file has " +
+                     std::to_string(itksys::SystemTools::FileExists(dataPath) ? FileSize(dataPath) : 0));
+  }
+}
+
+/** name in the folder of path (name itself when it is a full path or path has no folder). */
+inline std::string
+Beside(const std::string & path, const std::string & name)
+{
+  const std::string folder = itksys::SystemTools::GetFilenamePath(path);
+  return folder.empty() || itksys::SystemTools::FileIsFullPath(name) ? name : folder + "/" + name;
+}
+
+/** Lower-case last extension of path. */
+inline std::string
+Extension(const std::string & path)
+{
+  std::string e = itksys::SystemTools::GetFilenameLastExtension(path);
+  std::transform(e.begin(), e.end(), e.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  return e;
+}
+
+/** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. */
+inline void
+CheckNifti(const std::string & path, uint64_t bytes)
+{
+  const std::string ext = Extension(path);
+  std::string       header = path, data = path;
+  if (ext == ".hdr" || ext == ".img")
+  {
+    const std::string base = Beside(path, itksys::SystemTools::GetFilenameWithoutLastExtension(path));
+    header = base + ".hdr";
+    data = base + ".img";
+  }
+  else if (ext != ".nii" && ext != ".nia")
+  {
+    return; // compressed: the .gz check
+  }
+  const std::string h = Head(header, 176);
+  if (h.size() < 112)
+  {
+    ThrowTruncated(path, "shorter than a NIfTI header");
+  }
+  const auto * p = reinterpret_cast<const unsigned char *>(h.data());
+  uint32_t     sizeofHdr = LittleEndian32(p);
+  const bool   swap = sizeofHdr != 348 && sizeofHdr != 540;
+  auto         word = [&](size_t at) { return swap ? BigEndian32(p + at) : LittleEndian32(p + at); };
+  sizeofHdr = word(0);
+  double offset = 0.0;
+  if (sizeofHdr == 348)
+  {
+    const uint32_t bits = word(108);
+    float          f;
+    std::memcpy(&f, &bits, sizeof f);
+    offset = f;
+  }
+  else if (sizeofHdr == 540 && h.size() >= 176)
+  {
+    const uint64_t lo = word(swap ? 172 : 168), hi = word(swap ? 168 : 172);
+    offset = static_cast<double>((hi << 32) | lo);
+  }
+  else
+  {
+    return; // not a header we know: left to the reader
+  }
+  if (!(offset >= 0.0) || offset > 1e15)
+  {
+    ThrowTruncated(path, "its NIfTI header has an invalid data offset");
+  }
+  RequireBytes(data, static_cast<uint64_t>(offset), bytes, path);
+}
+
+/** MetaImage: from its "Key = value" header lines, the pixel data of an uncompressed file either follows the
+ * ElementDataFile = LOCAL line or fills one external file (after HeaderSize bytes). */
+inline void
+CheckMetaImage(const std::string & path, uint64_t bytes)
+{
+  std::ifstream in(path, std::ios::binary);
+  std::string   line, dataFile;
+  bool          compressed = false;
+  long long     headerSize = 0;
+  uint64_t      after = 0;
+  while (std::getline(in, line) && line.size() < 4096)
+  {
+    after += line.size() + 1;
+    const size_t eq = line.find('=');
+    if (eq == std::string::npos)
+    {
+      continue;
+    }
+    auto trim = [](std::string s) {
+      s.erase(0, s.find_first_not_of(" \t\r"));
+      s.erase(s.find_last_not_of(" \t\r") + 1);
+      return s;
+    };
+    const std::string key = trim(line.substr(0, eq)), value = trim(line.substr(eq + 1));
+    if (key == "CompressedData")
+    {
+      compressed = value == "True" || value == "true" || value == "1";
+    }
+    else if (key == "HeaderSize")
+    {
+      headerSize = std::atoll(value.c_str());
+    }
+    else if (key == "ElementDataFile")
+    {
+      dataFile = value;
+      break;
+    }
+  }
+  if (dataFile.empty() || compressed)
+  {
+    return; // no data line (left to the reader) or zlib-compressed data
+  }
+  if (dataFile == "LOCAL")
+  {
+    RequireBytes(path, after, bytes, path);
+  }
+  else if (dataFile.find(' ') == std::string::npos && dataFile.find('%') == std::string::npos && dataFile != "LIST")
+  {
+    const std::string data = Beside(path, dataFile);
+    RequireBytes(data, headerSize > 0 ? static_cast<uint64_t>(headerSize) : 0, bytes, path);
+  }
+}
+
+/** Legacy VTK structured points, binary: the pixel data follows the SCALARS' LOOKUP_TABLE line (or VECTORS). */
+inline void
+CheckVtk(const std::string & path, uint64_t bytes)
+{
+  std::ifstream in(path, std::ios::binary);
+  std::string   line;
+  uint64_t      after = 0;
+  bool          binary = false;
+  for (int lines = 0; lines < 64 && std::getline(in, line); ++lines)
+  {
+    after += line.size() + 1;
+    if (line.rfind("BINARY", 0) == 0)
+    {
+      binary = true;
+    }
+    if (line.rfind("LOOKUP_TABLE", 0) == 0 || line.rfind("VECTORS", 0) == 0)
+    {
+      if (binary)
+      {
+        RequireBytes(path, after, bytes, path);
+      }
+      return;
+    }
+  }
+}
+} // namespace detail
+
+/** Before any ITK reader opens path: throws itk::ExceptionObject when a PNG, JPEG or BMP file (told by its first
+ * bytes) ends early. */
+inline void
+CheckEncodedImageFileIsComplete(const std::string & path)
+{
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    return;
+  }
+  const std::string head = detail::Head(path, 64);
+  if (head.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0)
+  {
+    detail::CheckPng(path);
+  }
+  else if (head.size() >= 3 && head.compare(0, 3, "\xFF\xD8\xFF") == 0)
+  {
+    detail::CheckJpeg(path);
+  }
+  else if (head.compare(0, 2, "BM") == 0 && detail::Extension(path) == ".bmp")
+  {
+    detail::CheckBmp(path, head);
+  }
+}
+
+/** After io has read path's header: throws itk::ExceptionObject when an uncompressed NIfTI, MetaImage or legacy VTK
+ * file holds less pixel data than its header describes. */
+inline void
+CheckRawPixelDataIsComplete(const std::string & path, const itk::ImageIOBase * io)
+{
+  const std::string name = io->GetNameOfClass();
+  const uint64_t    bytes = static_cast<uint64_t>(io->GetImageSizeInBytes());
+  if (name == "NiftiImageIO")
+  {
+    detail::CheckNifti(path, bytes);
+  }
+  else if (name == "MetaImageIO")
+  {
+    detail::CheckMetaImage(path, bytes);
+  }
+  else if (name == "VTKImageIO")
+  {
+    detail::CheckVtk(path, bytes);
+  }
+}
+} // namespace dmrtools
+
+#endif

@@ -1,0 +1,178 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+
+// The tools' check that an image file holds all the pixel data its header describes (Examples/dmrImageFileCheck.h).
+// Regression test (a fixed bug): ITK read truncated uncompressed NIfTI, MetaImage and VTK files, JPEGs and BMPs
+// without an error (the missing pixels left as zeros or garbage), and a PNG cut within its first chunks made libpng
+// abort the process.
+#include "dmrImageFileCheck.h"
+#include "dmrReadImage.h"
+#include "itkImage.h"
+#include "itkImageFileWriter.h"
+#include "itkImageIOFactory.h"
+#include "itksys/SystemTools.hxx"
+#include "gtest/gtest.h"
+#include <fstream>
+#include <unistd.h>
+#include <string>
+
+namespace
+{
+using Image2DType = itk::Image<float, 2>;
+
+std::string
+WorkDir()
+{
+  const std::string dir =
+    itksys::SystemTools::GetCurrentWorkingDirectory() + "/dmrImageFileCheckGTest-" + std::to_string(::getpid());
+  itksys::SystemTools::MakeDirectory(dir);
+  return dir;
+}
+
+template <typename TPixel>
+void
+WriteTestImage(const std::string & path)
+{
+  using ImageType = itk::Image<TPixel, 2>;
+  auto image = ImageType::New();
+  image->SetRegions(typename ImageType::SizeType{ { 40, 30 } });
+  image->Allocate();
+  for (unsigned int y = 0; y < 30; ++y)
+  {
+    for (unsigned int x = 0; x < 40; ++x)
+    {
+      image->SetPixel({ { x, y } }, static_cast<TPixel>((x * 7 + y * 13) % 200 + 20));
+    }
+  }
+  auto writer = itk::ImageFileWriter<ImageType>::New();
+  writer->SetInput(image);
+  writer->SetFileName(path);
+  writer->Update();
+}
+
+std::string
+ReadBytes(const std::string & path)
+{
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+void
+WriteBytes(const std::string & path, const std::string & bytes)
+{
+  std::ofstream(path, std::ios::binary) << bytes;
+}
+
+/** Both checks, as the tools run them: the encoded formats before ITK, the raw ones after ITK's header read. */
+void
+CheckFile(const std::string & path)
+{
+  dmrtools::CheckEncodedImageFileIsComplete(path);
+  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
+  ASSERT_NE(io, nullptr) << path;
+  io->SetFileName(path);
+  io->ReadImageInformation();
+  dmrtools::CheckRawPixelDataIsComplete(path, io);
+}
+
+bool
+ThrowsTruncated(const std::string & path)
+{
+  try
+  {
+    CheckFile(path);
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    return std::string(e.GetDescription()).find("the file is truncated or corrupt") != std::string::npos;
+  }
+  return false;
+}
+} // namespace
+
+TEST(ImageFileCheck, WholeFilesPassAndShortOnesAreRefused)
+{
+  const std::string dir = WorkDir();
+  struct Case
+  {
+    std::string name; // the file written by ITK
+    std::string data; // the file that holds its pixel data
+    bool        bytePixels;
+  };
+  for (const Case & c : { Case{ "f.nii", "f.nii", false },
+                          Case{ "f.hdr", "f.img", false },
+                          Case{ "f.mha", "f.mha", false },
+                          Case{ "f.mhd", "f.raw", false },
+                          Case{ "f.vtk", "f.vtk", false },
+                          Case{ "f.png", "f.png", true },
+                          Case{ "f.jpg", "f.jpg", true },
+                          Case{ "f.bmp", "f.bmp", true } })
+  {
+    SCOPED_TRACE(c.name);
+    const std::string path = dir + "/" + c.name, data = dir + "/" + c.data;
+    if (c.bytePixels)
+    {
+      WriteTestImage<unsigned char>(path);
+    }
+    else
+    {
+      WriteTestImage<float>(path);
+    }
+    EXPECT_NO_THROW(CheckFile(path));
+    const std::string whole = ReadBytes(data);
+    // one byte short, and cut in the middle of the pixel data
+    for (const size_t keep : { whole.size() - 1, whole.size() / 2 })
+    {
+      WriteBytes(data, whole.substr(0, keep));
+      EXPECT_TRUE(ThrowsTruncated(path)) << "kept " << keep << " of " << whole.size() << " bytes";
+    }
+    WriteBytes(data, whole);
+    EXPECT_NO_THROW(CheckFile(path));
+  }
+}
+
+TEST(ImageFileCheck, PngCutInItsHeaderIsRefusedBeforeLibpngSeesIt)
+{
+  // 40 bytes: the signature, IHDR and part of the next chunk; libpng aborted the process on such a file
+  const std::string path = WorkDir() + "/cut.png";
+  WriteTestImage<unsigned char>(path);
+  WriteBytes(path, ReadBytes(path).substr(0, 40));
+  EXPECT_TRUE(ThrowsTruncated(path));
+  // the tools' header read, which ran into libpng, refuses it with a usage error first
+  EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+  EXPECT_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path), itk::ExceptionObject);
+}
+
+TEST(ImageFileCheck, JpegWithTrailingPaddingPasses)
+{
+  const std::string path = WorkDir() + "/padded.jpg";
+  WriteTestImage<unsigned char>(path);
+  WriteBytes(path, ReadBytes(path) + std::string("\r\n\0\0", 4));
+  EXPECT_NO_THROW(CheckFile(path));
+}
+
+TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
+{
+  const std::string path = WorkDir() + "/short.nii";
+  WriteTestImage<float>(path);
+  const std::string whole = ReadBytes(path);
+  EXPECT_NO_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path));
+  WriteBytes(path, whole.substr(0, whole.size() - 100));
+  EXPECT_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path), itk::ExceptionObject);
+  EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+}
