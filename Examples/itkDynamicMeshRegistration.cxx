@@ -511,6 +511,51 @@ WithoutItkPrefix(std::string text)
   return text;
 }
 
+/** Share of the reference image's pixels whose physical point lies inside the image's buffer, where ResampleOnto
+ * interpolates it (outside, it gets the default value): estimated on a grid of at most 64 points per axis; when none
+ * of those is inside, counted over every pixel, so 0 means that none is inside. */
+template <typename TImage, typename TReference>
+double
+CoveredFraction(const TImage * image, const TReference * reference)
+{
+  auto interpolator = itk::LinearInterpolateImageFunction<TImage, double>::New();
+  interpolator->SetInputImage(image);
+  const auto             region = reference->GetLargestPossibleRegion();
+  constexpr unsigned int D = TReference::ImageDimension;
+  auto                   covered = [&](const itk::Size<D> & step) {
+    std::array<itk::IndexValueType, D> count;
+    size_t                             total = 1;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      count[k] = (static_cast<itk::IndexValueType>(region.GetSize(k)) + step[k] - 1) / step[k];
+      total *= static_cast<size_t>(count[k]);
+    }
+    size_t inside = 0;
+    for (size_t s = 0; s < total; ++s)
+    {
+      typename TReference::IndexType index;
+      size_t                         rest = s;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        index[k] = region.GetIndex(k) + static_cast<itk::IndexValueType>(rest % count[k]) * step[k];
+        rest /= count[k];
+      }
+      typename TReference::PointType point;
+      reference->TransformIndexToPhysicalPoint(index, point);
+      inside += interpolator->IsInsideBuffer(point) ? 1 : 0;
+    }
+    return static_cast<double>(inside) / static_cast<double>(total);
+  };
+  itk::Size<D> sparse, every;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    sparse[k] = std::max<itk::SizeValueType>(1, (region.GetSize(k) + 63) / 64);
+    every[k] = 1;
+  }
+  const double estimate = covered(sparse);
+  return estimate > 0.0 ? estimate : covered(every); // a small overlap that the sparse grid missed is counted exactly
+}
+
 /** Resample an image onto the grid of a reference image through physical space (identity transform). */
 template <typename TImage, typename TReference>
 typename TImage::Pointer
@@ -636,7 +681,21 @@ Run(const Options & opt)
       image->Modified();
     }
   }
-  const bool movingResampled = !dmrtools::SameGrid<D>(fixed.GetPointer(), moving.GetPointer());
+  const bool   movingResampled = !dmrtools::SameGrid<D>(fixed.GetPointer(), moving.GetPointer());
+  const double movingOverlap = movingResampled ? CoveredFraction(moving.GetPointer(), fixed.GetPointer()) : 1.0;
+  if (movingOverlap == 0.0)
+  {
+    throw UsageError("the moving image does not overlap the fixed image in physical space: check their origins and "
+                     "directions (e.g. one of them flipped, LPS against RAS)");
+  }
+  if (movingOverlap < 0.5)
+  {
+    std::cout << "note: the moving image covers only "
+              << (movingOverlap < 0.01 ? std::string("less than 1")
+                                       : std::to_string(std::lround(100.0 * movingOverlap)))
+              << " % of the fixed image in physical space (outside it, it counts as its lowest intensity): check "
+                 "their origins and directions if that is not intended\n";
+  }
   if (movingResampled)
   {
     // a moving image on another grid is brought onto the fixed grid first (linear, outside = its minimum)
@@ -1009,6 +1068,7 @@ Run(const Options & opt)
        << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
        << evaluation << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
+       << "  \"moving_overlap\": " << movingOverlap << ",\n"
        << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + JsonEscape(opt.fixedMask) + "\"") << ",\n"
        << "  \"peak_rss_mb\": " << PeakRSSMiB() << ",\n"
        << "  \"wall_time_s\": " << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count()

@@ -382,6 +382,8 @@ run-3d)
     --iterations 2 --threads 2
   check "moving image on another grid: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
   check "report: moving_resampled is true" grep -q '"moving_resampled": true' "$W/out-other-grid/report.json"
+  check "report: moving_overlap is 1 (the coarse grid covers the fixed image)" \
+    grep -q '"moving_overlap": 1,' "$W/out-other-grid/report.json"
   check "warped.nii.gz lies on the fixed grid" "$CHECK" same-grid "$W/fixed3d.nii.gz" "$W/out-other-grid/warped.nii.gz"
   # --intensity-window registers windowed copies; warped.nii.gz keeps the moving image's intensities (cube ~1.04-1.09)
   run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-window" --nodes 100 \
@@ -534,6 +536,25 @@ bad-truncated-image)
   head -c 40 "$W/whole.png" >"$W/truncated.png"
   rm -f "$W/whole.png"
   expect_bad_input truncated-png --fixed "$W/truncated.png" --moving "$W/truncated.png" --nodes 30 --iterations 2
+  ;;
+bad-no-overlap)
+  # a moving image that lies elsewhere in physical space (e.g. flipped, or another origin): an error, not a
+  # registration to its background; a small overlap registers with a note
+  { printf 'ObjectType = Image\nNDims = 2\nDimSize = 8 8\nOffset = 1000 1000\nElementType = MET_UCHAR\n'
+    printf 'ElementDataFile = LOCAL\n'; awk 'BEGIN { for (i = 0; i < 64; i++) printf "%c", 65 + (i * 7) % 50 }'; } \
+    >"$W/far.mha"
+  expect_bad_input no-overlap --fixed "$DATA/fixed.nii.gz" --moving "$W/far.mha" --nodes 30 --iterations 2
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$W/far.mha" --output-dir "$W/out-far" --nodes 30 --iterations 2
+  check "no overlap: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q "the moving image does not overlap the fixed image in physical space" "$W/stderr"
+  sed 's/^Offset = 1000 1000$/Offset = 508 508/' "$W/far.mha" >"$W/corner.mha"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$W/corner.mha" --output-dir "$W/out-corner" --nodes 30 --iterations 2
+  check "small overlap: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+  check "small overlap: a note says how much of the fixed image the moving image covers" \
+    grep -q "^note: the moving image covers only less than 1 % of the fixed image in physical space" "$W/stdout"
+  overlap=$(json_number "$W/out-corner/report.json" moving_overlap)
+  check "report: moving_overlap is small but positive ($overlap)" awk_true "${overlap:-0} > 0 && ${overlap:-1} < 0.01"
   ;;
 bad-empty-directory)
   mkdir -p "$W/empty-dicom-dir"
