@@ -21,6 +21,8 @@
 #include "itkDiscreteGaussianImageFilter.h"
 #include "itkShrinkImageFilter.h"
 #include <array>
+#include <cmath>
+#include <vector>
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
@@ -925,4 +927,87 @@ TEST(DensityFieldFilter, FieldAndMaskMustLieOnTheFixedGrid)
     energy += double(image->GetBufferPointer()[p]) * image->GetBufferPointer()[p];
   }
   EXPECT_LT(elsewhere->GetSSD(), 0.01 * energy);
+}
+
+// Regression test (a fixed bug): ITK's GaussianOperator evaluates e^-t I_n(t) directly, which gives NaN above a
+// variance of about 700 (e^-t underflows, I_n(t) overflows). The pyramid's level l smooths with variance 4^l / 4, so
+// levels 7 and 8 (variance 1024 and 4096, both allowed by SetNumberOfLevels) made every density NaN. There the
+// coefficients now come from LargeVarianceGaussianCoefficients, checked here against e^-t I_n(t) = (1/pi) int_0^pi e^(t
+// (cos u - 1)) cos(n u) du (trapezoid rule, exact to rounding for this periodic integrand) under ITK's truncation rule.
+TEST(DensityFieldFilter, GaussianCoefficientsOfLargeVariancesAreFinite)
+{
+  auto itkCoefficients = [](double variance) {
+    itk::GaussianOperator<double, 2> op;
+    op.SetDirection(0);
+    op.SetVariance(variance);
+    op.SetMaximumKernelWidth(64);
+    op.SetMaximumError(0.01);
+    op.CreateDirectional();
+    std::vector<double> c(op.Size());
+    for (size_t j = 0; j < c.size(); ++j)
+    {
+      c[j] = op[static_cast<unsigned int>(j)];
+    }
+    return c;
+  };
+  auto reference = [](double t) {
+    const int           steps = 20000;
+    const double        pi = 3.14159265358979323846, h = pi / steps;
+    std::vector<double> half;
+    double              sum = 0.0;
+    for (int n = 0; n == 0 || n == 1 || (sum < 0.99 && half.size() <= 64); ++n)
+    {
+      double integral = 0.0;
+      for (int k = 0; k <= steps; ++k)
+      {
+        const double u = k * h;
+        integral += (k == 0 || k == steps ? 0.5 : 1.0) * std::exp(t * (std::cos(u) - 1.0)) * std::cos(n * u);
+      }
+      half.push_back(integral * h / pi);
+      sum += (n == 0 ? 1.0 : 2.0) * half.back();
+    }
+    std::vector<double> c(2 * half.size() - 1);
+    for (size_t i = 0; i < half.size(); ++i)
+    {
+      c[half.size() - 1 + i] = c[half.size() - 1 - i] = half[i] / sum;
+    }
+    return c;
+  };
+  for (const double t : { 100.0, 1024.0, 4096.0 })
+  {
+    const auto ours = itk::dmr::LargeVarianceGaussianCoefficients(t, 0.01, 64);
+    const auto expected = reference(t);
+    ASSERT_EQ(ours.size(), expected.size()) << "variance " << t;
+    double sum = 0.0;
+    for (size_t j = 0; j < ours.size(); ++j)
+    {
+      EXPECT_NEAR(ours[j], expected[j], 1e-9 * expected[j]) << "variance " << t << ", coefficient " << j;
+      EXPECT_EQ(ours[j], ours[ours.size() - 1 - j]);
+      sum += ours[j];
+    }
+    EXPECT_NEAR(sum, 1.0, 1e-12);
+    if (t > 1000.0)
+    {
+      const auto itkOwn = itkCoefficients(t);
+      EXPECT_FALSE(std::isfinite(itkOwn[itkOwn.size() / 2])) << "ITK's coefficients are finite at variance " << t;
+      EXPECT_EQ(ours.size(), 129u); // ITK's width limit: 65 on each side, the centre shared
+    }
+  }
+  // all eight levels of a 64 x 48 pair: finite force and density everywhere
+  const ImageType::SizeType size{ { 64, 48 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto                      filter = FilterType::New();
+  filter->SetFixedImage(
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(30, 22))));
+  filter->SetMovingImage(
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(33, 24))));
+  filter->SetNumberOfLevels(8);
+  filter->Update();
+  EXPECT_TRUE(std::isfinite(filter->GetMSSD()));
+  EXPECT_GT(filter->GetMSSD(), filter->GetSSD());
+  for (size_t p = 0; p < 64 * 48; ++p)
+  {
+    ASSERT_TRUE(std::isfinite(filter->GetOutput()->GetBufferPointer()[p])) << "pixel " << p;
+    ASSERT_GT(filter->GetOutput()->GetBufferPointer()[p], 0.0f) << "pixel " << p;
+  }
 }

@@ -24,6 +24,7 @@
 #include "itkShrinkImageFilter.h"
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <vector>
 
 namespace itk
@@ -53,6 +54,51 @@ struct GaussianShrinkPlan
   std::array<std::vector<int64_t>, D> kept;         // per axis: the kept input positions (buffer-relative)
   std::array<std::vector<double>, D>  coefficients; // per axis: GaussianOperator<double>, 2 r + 1 of them
 };
+
+/** GaussianOperator<double>'s coefficients (ITK 5.2) for a variance t at which ITK's own evaluation fails. ITK takes
+ * c_n = e^-t I_n(t) for n = 0, 1, ... until their two-sided sum reaches 1 - maximumError or there are more than
+ * maximumKernelWidth of them, divides by that sum and mirrors them; above t of about 700 e^-t underflows to 0 and
+ * I_n(t) overflows, so every coefficient is NaN (the pyramid's level 7 has t = 1024). The same rule, evaluated
+ * stably: e^-t I_0(t) from its asymptotic series (relative error below 2e-9 for t >= 100, 1e-12 where it is used),
+ * the ratios I_n / I_(n-1) from the backward recurrence of their continued fraction, started far enough (t + width +
+ * 64 terms) to converge. Used only where ITK's coefficients are not finite, so every other level keeps ITK's values
+ * bit for bit (which, for variances of some tens and more, are themselves approximate: ITK's I_n(t) starts its
+ * downward recurrence at an order that does not grow with t). */
+inline std::vector<double>
+LargeVarianceGaussianCoefficients(double t, double maximumError, unsigned int maximumKernelWidth)
+{
+  const unsigned int  width = std::max(2u, maximumKernelWidth);
+  std::vector<double> ratio(width + 2, 0.0); // ratio[k] = I_k(t) / I_(k-1)(t)
+  double              r = 0.0;
+  for (size_t k = width + 1 + static_cast<size_t>(t) + 64; k >= 1; --k)
+  {
+    r = 1.0 / (2.0 * static_cast<double>(k) / t + r);
+    if (k < ratio.size())
+    {
+      ratio[k] = r;
+    }
+  }
+  const double        pi = 3.14159265358979323846;
+  std::vector<double> half{ (1.0 + 1.0 / (8.0 * t) + 9.0 / (128.0 * t * t) + 225.0 / (3072.0 * t * t * t)) /
+                            std::sqrt(2.0 * pi * t) };
+  half.push_back(half[0] * ratio[1]);
+  double sum = half[0] + 2.0 * half[1];
+  for (size_t i = 2; sum < 1.0 - maximumError; ++i) // ITK's loop, its failsafe and its width limit
+  {
+    half.push_back(half[i - 1] * ratio[i]);
+    sum += 2.0 * half[i];
+    if (half[i] <= 0.0 || half.size() > maximumKernelWidth)
+    {
+      break;
+    }
+  }
+  std::vector<double> coefficients(2 * half.size() - 1);
+  for (size_t i = 0; i < half.size(); ++i)
+  {
+    coefficients[half.size() - 1 + i] = coefficients[half.size() - 1 - i] = half[i] / sum;
+  }
+  return coefficients;
+}
 
 template <unsigned int D, typename TImage>
 GaussianShrinkPlan<D>
@@ -109,6 +155,11 @@ PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKe
     for (size_t j = 0; j < plan.coefficients[k].size(); ++j)
     {
       plan.coefficients[k][j] = op[static_cast<unsigned int>(j)];
+    }
+    if (!std::all_of(
+          plan.coefficients[k].begin(), plan.coefficients[k].end(), [](double c) { return std::isfinite(c); }))
+    {
+      plan.coefficients[k] = LargeVarianceGaussianCoefficients(variance, 0.01, maximumKernelWidth); // ITK overflowed
     }
   }
   return plan;
