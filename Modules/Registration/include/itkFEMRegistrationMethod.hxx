@@ -488,7 +488,8 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
   // border. At the first iteration nothing has been registered, so that is an error (not "the images match"); a later
   // mesh without a free node ends the run with the transformation reached so far, as no step is possible.
   const SimplexMeshType & mesh = *m_CurrentMesh;
-  if (std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
+  if (mesh.fixed.size() == mesh.NumberOfNodes() &&
+      std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
   {
     if (m_CurrentIteration <= 1)
     {
