@@ -147,15 +147,20 @@ ReadImageOrDicomSeries(const std::string & path)
   return reader->GetOutput();
 }
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
- * holds a DICOM series; components per pixel into *components when given (1 for DICOM). Reads the header only, and
+ * holds a DICOM series; components per pixel into *components and whether they are an RGB(A) colour into *colour
+ * when given (1 and false for DICOM). Reads the header only, and
  * checks the file's length where the format allows (a truncated .gz file is found by ReadImageOrDicomSeries). Throws
  * UsageError (bad input) otherwise. */
 inline unsigned int
-ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
+ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, bool * colour = nullptr)
 {
   if (components)
   {
     *components = 1;
+  }
+  if (colour)
+  {
+    *colour = false;
   }
   if (!itksys::SystemTools::FileExists(path))
   {
@@ -201,6 +206,10 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr)
   if (components)
   {
     *components = io->GetNumberOfComponents();
+  }
+  if (colour)
+  {
+    *colour = io->GetPixelType() == itk::IOPixelEnum::RGB || io->GetPixelType() == itk::IOPixelEnum::RGBA;
   }
   unsigned int d = io->GetNumberOfDimensions();
   // a 3D file with a single slice is a 2D image

@@ -612,10 +612,19 @@ Run(const Options & opt)
   auto readOptional = [&launch](auto pointerTag, const std::string & path, const std::string & what) {
     using ReadType = typename decltype(pointerTag)::ObjectType;
     return std::async(launch(path), [&path, what] {
-      if (ImageDimensionOf(path) != D)
+      constexpr bool isField = std::is_same_v<ReadType, FieldType>;
+      unsigned int   components = 1;
+      if (ImageDimensionOf(path, &components) != D)
       {
-        throw UsageError(what + " is not a " + std::to_string(D) + "D " +
-                         (std::is_same_v<ReadType, FieldType> ? "field: " : "image: ") + path);
+        throw UsageError(what + " is not a " + std::to_string(D) + "D " + (isField ? "field: " : "image: ") + path);
+      }
+      // ITK would fill a field's components from a scalar image, or take a mask from a vector image's first one
+      const unsigned int expected = isField ? D : 1;
+      if (components != expected)
+      {
+        throw UsageError(what + " must have " + std::to_string(expected) + " component" + (expected > 1 ? "s" : "") +
+                         " per voxel" + (isField ? " (a displacement field)" : "") + ", " + path + " has " +
+                         std::to_string(components));
       }
       return dmrtools::ReadImageOrDicomSeries<ReadType>(path);
     });
@@ -1111,8 +1120,25 @@ main(int argc, char * argv[])
       itk::MultiThreaderBase::SetGlobalDefaultNumberOfThreads(static_cast<itk::ThreadIdType>(opt.threads));
     }
     dmrtools::InitializeItkGlobals(); // before the inputs are read on threads
-    const unsigned int dFixed = ImageDimensionOf(opt.fixed);
-    const unsigned int dMoving = ImageDimensionOf(opt.moving);
+    // scalar images; a colour image (RGB, RGBA) is read as its luminance (ITK's conversion), anything else with several
+    // components per pixel (e.g. a displacement field) is not an image to register
+    auto dimensionOfScalarImage = [](const std::string & what, const std::string & path) {
+      unsigned int       components = 1;
+      bool               colour = false;
+      const unsigned int d = ImageDimensionOf(path, &components, &colour);
+      if (components > 1 && !colour)
+      {
+        throw UsageError("the " + what + " image has " + std::to_string(components) +
+                         " components per pixel; the registration needs scalar (or colour) images: " + path);
+      }
+      if (colour)
+      {
+        std::cout << "note: the " << what << " image is a colour image; it is registered as its luminance\n";
+      }
+      return d;
+    };
+    const unsigned int dFixed = dimensionOfScalarImage("fixed", opt.fixed);
+    const unsigned int dMoving = dimensionOfScalarImage("moving", opt.moving);
     if (dFixed != dMoving)
     {
       throw UsageError("the fixed image is " + std::to_string(dFixed) + "D but the moving image is " +

@@ -556,6 +556,30 @@ bad-no-overlap)
   overlap=$(json_number "$W/out-corner/report.json" moving_overlap)
   check "report: moving_overlap is small but positive ($overlap)" awk_true "${overlap:-0} > 0 && ${overlap:-1} < 0.01"
   ;;
+bad-components)
+  # images to register are scalar (or colour), a mask scalar, a truth field a vector of the dimension: ITK would
+  # convert the others silently (a displacement field to one of its components, a scalar into both components)
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/field-run" --nodes 30 \
+    --iterations 2
+  check "a run for a 2D displacement field exits 0" test "$RC" = 0
+  field="$W/field-run/displacement.nii.gz"
+  rm -f "$W/stdout" "$W/stderr" # expect_bad_input checks that nothing appears beside its output directories
+  expect_bad_input vector-moving --fixed "$DATA/fixed.nii.gz" --moving "$field" --nodes 30 --iterations 2
+  expect_bad_input vector-mask --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
+    --fixed-mask "$field"
+  expect_bad_input scalar-truth --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
+    --iterations 2 --truth-displacement "$DATA/fixed.nii.gz"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-truth" --nodes 30 \
+    --iterations 2 --truth-displacement "$DATA/fixed.nii.gz"
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q -- "--truth-displacement must have 2 components per voxel (a displacement field)" "$W/stderr"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$field" --output-dir "$W/out-vector" --nodes 30 --iterations 2
+  check "the message says why ($(cat "$W/stderr"))" grep -q "the moving image has 2 components per pixel" "$W/stderr"
+  # the run's own field is a valid truth field
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-own-truth" --nodes 30 \
+    --iterations 2 --truth-displacement "$field"
+  check "a 2-component truth field is taken ($(cat "$W/stderr"))" test "$RC" = 0
+  ;;
 bad-empty-directory)
   mkdir -p "$W/empty-dicom-dir"
   expect_bad_input empty-dicom-dir --fixed "$W/empty-dicom-dir" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2
