@@ -57,12 +57,14 @@
 #include <vtkLogger.h>
 #endif
 
+#include <cerrno>
 #include <chrono>
 #include <cstdlib>
 #include <fstream>
 #include <future>
 #include <iomanip>
 #include <iostream>
+#include <limits>
 #include <map>
 #include <sstream>
 #include <string>
@@ -142,11 +144,16 @@ const char * const Usage =
 long
 ParseInteger(const std::string & flag, const std::string & value)
 {
-  char *     end = nullptr;
+  char * end = nullptr;
+  errno = 0;
   const long v = std::strtol(value.c_str(), &end, 10);
   if (value.empty() || *end != '\0')
   {
     throw UsageError(flag + " expects an integer, got '" + value + "'");
+  }
+  if (errno == ERANGE)
+  {
+    throw UsageError(flag + ": " + value + " is out of range");
   }
   return v;
 }
@@ -276,6 +283,16 @@ ParseArguments(int argc, char * argv[])
   }
   if (opt.iterations < 1)
     throw UsageError("--iterations must be at least 1");
+  // the registration takes these as unsigned int: a larger value would wrap around
+  constexpr long largest = std::numeric_limits<unsigned int>::max();
+  for (const auto & [flag, value] : { std::make_pair("--iterations", opt.iterations),
+                                      std::make_pair("--regular-size", opt.regularSize),
+                                      std::make_pair("--threads", opt.threads) })
+  {
+    if (value > largest)
+      throw UsageError(std::string(flag) + " must be at most " + std::to_string(largest) + ", got " +
+                       std::to_string(value));
+  }
   if (opt.levels < 1 || opt.levels > 8)
     throw UsageError("--levels must be between 1 and 8");
   if (opt.threads < 0)

@@ -489,6 +489,13 @@ bad-iterations)
   expect_bad_input iterations-abc --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations abc
   expect_bad_input iterations-5x --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations 5x
   expect_bad_input iterations-empty --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations ""
+  # values beyond what the registration takes (unsigned int) would wrap around (4294967296 -> 0, 99999999999 -> over a
+  # billion iterations), and beyond long they were clamped
+  expect_bad_input iterations-2-32 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --iterations 4294967296
+  expect_bad_input iterations-huge --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" \
+    --iterations 99999999999999999999999
+  expect_bad_input regular-size-2-32 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh regular \
+    --regular-size 4294967299
   ;;
 bad-missing-mesh)
   expect_bad_input missing-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
