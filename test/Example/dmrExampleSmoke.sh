@@ -453,7 +453,7 @@ bad-mesh-without-free-node)
   # border nodes are fixed: a regular mesh of 2 nodes per axis, a static mesh with only border nodes or a dynamic mesh
   # of a few nodes (every cell on the border) moves nothing
   printf '%s\n' "# vtk DataFile Version 3.0" "corners" "ASCII" "DATASET POLYDATA" "POINTS 4 double" "0 0 0" "511 0 0" \
-    "511 -511 0" "0 -511 0" "POLYGONS 2 8" "3 0 1 2" "3 0 2 3" >"$W/corners.vtk"
+    "511 511 0" "0 511 0" "POLYGONS 2 8" "3 0 1 2" "3 0 2 3" >"$W/corners.vtk"
   expect_bad_input regular-size-2 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh regular \
     --regular-size 2 --iterations 2
   expect_bad_input corner-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh "$W/corners.vtk" \

@@ -25,6 +25,7 @@
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -460,6 +461,54 @@ TEST(FEMRegistrationMethod, BadInputThrows)
     cornerMesh->SetStaticMesh(corners);
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
       cornerMesh, { "the static mesh has no free node: all its 4 nodes lie on the border" }));
+  }
+  // a static mesh must tile the image box (pixel centres first to last): not leave it, not overlap itself
+  {
+    using MeshType = MethodType::MeshType;
+    auto makeMesh = [](const std::vector<std::array<double, 2>> &       points,
+                       const std::vector<std::array<unsigned int, 3>> & triangles) {
+      auto mesh = MeshType::New();
+      for (unsigned int i = 0; i < points.size(); ++i)
+      {
+        MeshType::PointType p;
+        p[0] = points[i][0];
+        p[1] = points[i][1];
+        mesh->SetPoint(i, p);
+      }
+      for (unsigned int t = 0; t < triangles.size(); ++t)
+      {
+        MeshType::CellAutoPointer cell;
+        cell.TakeOwnership(new itk::TriangleCell<MeshType::CellType>);
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          cell->SetPointId(k, triangles[t][k]);
+        }
+        mesh->SetCell(t, cell);
+      }
+      return mesh;
+    };
+    const std::vector<std::array<unsigned int, 3>> fan{ { 0, 1, 4 }, { 1, 2, 4 }, { 2, 3, 4 }, { 3, 0, 4 } };
+    auto                                           withMesh = [&](const std::vector<std::array<double, 2>> &       points,
+                        const std::vector<std::array<unsigned int, 3>> & triangles) {
+      auto method = SmallRegistration(MeshMode::Static, 3);
+      method->SetStaticMesh(makeMesh(points, triangles));
+      return method;
+    };
+    // the pixel edges instead of the centres: half a pixel out, so no node would be fixed (a singular system)
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      withMesh({ { -0.5, -0.5 }, { 63.5, -0.5 }, { 63.5, 55.5 }, { -0.5, 55.5 }, { 30, 28 } }, fan),
+      { "mesh node 0 lies outside the image box", "by 0.5 pixel" }));
+    auto overlapping = fan;
+    overlapping.push_back({ 0, 1, 2 });
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      withMesh({ { 0, 0 }, { 63, 0 }, { 63, 55 }, { 0, 55 }, { 30, 28 } }, overlapping),
+      { "the mesh's elements overlap", "1.5 times the image box" }));
+    // a mesh stored in float: corners a few 1e-5 pixel off the box are put on it and fixed, the centre moves
+    auto rounded = withMesh({ { -2e-5, 3e-5 }, { 63.00004, 0 }, { 63, 55.00002 }, { 1e-5, 55 }, { 30, 28 } }, fan);
+    EXPECT_NO_THROW(rounded->Update());
+    EXPECT_LT(rounded->GetFinalSSD(), rounded->GetHistory().front().ssd);
+    const auto & corner = rounded->GetDisplacementField()->GetPixel({ { 63, 55 } });
+    EXPECT_EQ(corner.GetNorm(), 0.0);
   }
   // a dynamic mesh of few nodes: every cell touches the border, so every node is fixed; found at the first mesh
   for (const unsigned int nodes : { 4u, 5u })

@@ -282,8 +282,46 @@ FromItkMesh(const TMesh * mesh, const TImage * image)
   {
     itkGenericExceptionMacro("the mesh has no " << (D == 2 ? "triangles" : "tetrahedra"));
   }
+  // The mesh must lie in the image box, whose border nodes are fixed: from the first to the last pixel centre. Nodes
+  // within 1e-3 pixel of the border (a mesh stored in float) are put on it, so that they are found fixed; a node
+  // further out is refused (e.g. a mesh of the pixel edges, half a pixel out, would have no fixed node at all).
+  const auto grid = Grid<D>::FromImage(image);
+  for (size_t a = 0; a < n; ++a)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      double &     x = out.nodes[a * D + k];
+      const double hi = static_cast<double>(grid.size[k] - 1) * grid.spacing[k];
+      const double tol = 1e-3 * grid.spacing[k];
+      x = std::abs(x) <= tol ? 0.0 : (std::abs(x - hi) <= tol ? hi : x);
+      if (x < 0.0 || x > hi)
+      {
+        itkGenericExceptionMacro("mesh node " << a
+                                              << " lies outside the image box (the pixel centres from the first to "
+                                                 "the last) by "
+                                              << (x < 0.0 ? -x : x - hi) / grid.spacing[k] << " pixel along axis "
+                                              << k);
+      }
+    }
+  }
   out.OrientPositively();
-  out.MarkBorderNodes(Grid<D>::FromImage(image));
+  // inside the box and covering it (every pixel centre lies in an element, checked by the barycentric map), the
+  // elements tile it exactly when their measures add up to the box's: more means elements that overlap
+  double total = 0.0, box = 1.0;
+  for (size_t e = 0; e < out.elements.size(); ++e)
+  {
+    total += out.SignedMeasure(e);
+  }
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    box *= static_cast<double>(grid.size[k] - 1) * grid.spacing[k];
+  }
+  if (total > box * (1.0 + 1e-6))
+  {
+    itkGenericExceptionMacro("the mesh's elements overlap: their " << (D == 2 ? "areas" : "volumes") << " add up to "
+                                                                   << total / box << " times the image box's");
+  }
+  out.MarkBorderNodes(grid);
   return out;
 }
 
