@@ -27,7 +27,6 @@
 #include "itkMacro.h"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
-#include <cctype>
 #include <cstdint>
 #include <cstring>
 #include <fstream>
@@ -173,9 +172,7 @@ Beside(const std::string & path, const std::string & name)
 inline std::string
 Extension(const std::string & path)
 {
-  std::string e = itksys::SystemTools::GetFilenameLastExtension(path);
-  std::transform(e.begin(), e.end(), e.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return e;
+  return itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
 }
 
 /** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. */

@@ -148,9 +148,8 @@ ReadImageOrDicomSeries(const std::string & path)
 }
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
  * holds a DICOM series; components per pixel into *components and whether they are an RGB(A) colour into *colour
- * when given (1 and false for DICOM). Reads the header only, and
- * checks the file's length where the format allows (a truncated .gz file is found by ReadImageOrDicomSeries). Throws
- * UsageError (bad input) otherwise. */
+ * when given (1 and false for DICOM). Reads the header only, and checks the file's length where the format allows (a
+ * truncated .gz file is found by ReadImageOrDicomSeries). Throws UsageError (bad input) otherwise. */
 inline unsigned int
 ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, bool * colour = nullptr)
 {

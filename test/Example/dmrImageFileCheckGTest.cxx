@@ -20,6 +20,7 @@
 // Regression test (a fixed bug): ITK read truncated uncompressed NIfTI, MetaImage and VTK files, JPEGs and BMPs
 // without an error (the missing pixels left as zeros or garbage), and a PNG cut within its first chunks made libpng
 // abort the process.
+#include "dmrExampleTestDirectory.h"
 #include "dmrImageFileCheck.h"
 #include "dmrReadImage.h"
 #include "itkImage.h"
@@ -28,7 +29,6 @@
 #include "itksys/SystemTools.hxx"
 #include "gtest/gtest.h"
 #include <fstream>
-#include <unistd.h>
 #include <string>
 
 namespace
@@ -38,10 +38,7 @@ using Image2DType = itk::Image<float, 2>;
 std::string
 WorkDir()
 {
-  const std::string dir =
-    itksys::SystemTools::GetCurrentWorkingDirectory() + "/dmrImageFileCheckGTest-" + std::to_string(::getpid());
-  itksys::SystemTools::MakeDirectory(dir);
-  return dir;
+  return dmrtools::test::TemporaryDirectory("dmrImageFileCheckGTest");
 }
 
 template <typename TPixel>

@@ -17,6 +17,7 @@
  *=========================================================================*/
 // The tools' .nii.gz writer (dmrtools::WriteImage, dmrtools::GzipFileParallel): what ITK reads back is the image
 // written, bit for bit, with its geometry, and the file is a gzip stream of several members.
+#include "dmrExampleTestDirectory.h"
 #include "dmrToolOutput.h"
 #include "itkImage.h"
 #include "itkImageFileReader.h"
@@ -33,10 +34,7 @@ namespace
 std::string
 TemporaryDirectory()
 {
-  const std::string dir =
-    itksys::SystemTools::GetCurrentWorkingDirectory() + "/dmrToolOutputGTest-" + std::to_string(::getpid());
-  itksys::SystemTools::MakeDirectory(dir);
-  return dir;
+  return dmrtools::test::TemporaryDirectory("dmrToolOutputGTest");
 }
 
 std::vector<unsigned char>
