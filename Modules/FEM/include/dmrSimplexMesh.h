@@ -119,6 +119,13 @@ struct SimplexMesh
     }
   }
 
+  /** True when a node can move: not every node is marked fixed (a mesh without fixed flags has only free nodes). */
+  bool
+  HasFreeNode() const
+  {
+    return fixed.size() != NumberOfNodes() || std::find(fixed.begin(), fixed.end(), 0) != fixed.end();
+  }
+
   /** Mark nodes on the border of the grid's box as fixed. */
   void
   MarkBorderNodes(const Grid<D> & grid)

@@ -488,8 +488,7 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
   // border. At the first iteration nothing has been registered, so that is an error (not "the images match"); a later
   // mesh without a free node ends the run with the transformation reached so far, as no step is possible.
   const SimplexMeshType & mesh = *m_CurrentMesh;
-  if (mesh.fixed.size() == mesh.NumberOfNodes() &&
-      std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
+  if (!mesh.HasFreeNode())
   {
     if (m_CurrentIteration <= 1)
     {
@@ -582,7 +581,7 @@ template <typename TF, typename TM, typename TD>
 void
 FEMRegistrationMethod<TF, TM, TD>::CheckStaticMeshHasAFreeNode(const SimplexMeshType & mesh) const
 {
-  if (std::find(mesh.fixed.begin(), mesh.fixed.end(), 0) == mesh.fixed.end())
+  if (!mesh.HasFreeNode())
   {
     itkExceptionMacro("the static mesh has no free node: all its "
                       << mesh.NumberOfNodes()
