@@ -159,7 +159,8 @@ PlanGaussianShrink(const TImage * image, double variance, unsigned int maximumKe
     if (!std::all_of(
           plan.coefficients[k].begin(), plan.coefficients[k].end(), [](double c) { return std::isfinite(c); }))
     {
-      plan.coefficients[k] = LargeVarianceGaussianCoefficients(variance, 0.01, maximumKernelWidth); // ITK overflowed
+      plan.coefficients[k] = // ITK overflowed: the same operator's coefficients, evaluated stably
+        LargeVarianceGaussianCoefficients(variance, op.GetMaximumError(), op.GetMaximumKernelWidth());
     }
   }
   return plan;
