@@ -600,6 +600,58 @@ DevicePyramidEqualsCPU(unsigned int n, unsigned int thin)
   float none = 0.0f;
   EXPECT_FALSE(context.DownloadLevel(static_cast<unsigned int>(pyramid.size()), &none, nullptr, nullptr).Ok());
 }
+/** The pair with both images multiplied by 2^70 and by 2^-70 (beyond single precision's |f|^2 without the density
+ * filter's intensity scale) on the GPU: the fields of the unscaled pair on the GPU, energies in the images' units. */
+template <unsigned int D>
+void
+IntensityUnitDoesNotChangeTheRun(unsigned int nodes, unsigned int iterations, unsigned int n, bool deviceSolve)
+{
+  auto reference = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n);
+  if (deviceSolve)
+  {
+    reference->SetDeviceSolverMinimumDegreesOfFreedom(0);
+  }
+  reference->Update();
+  const size_t pixels = reference->GetFixedImage()->GetLargestPossibleRegion().GetNumberOfPixels();
+  for (const int exponent : { 70, -70 })
+  {
+    auto scaled = [&](const ImageOf<D> * image) {
+      auto out = ImageOf<D>::New();
+      out->SetRegions(image->GetLargestPossibleRegion());
+      out->CopyInformation(image);
+      out->Allocate();
+      for (size_t p = 0; p < pixels; ++p)
+      {
+        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
+      }
+      return out;
+    };
+    auto method = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n);
+    method->SetFixedImage(scaled(reference->GetFixedImage()));
+    method->SetMovingImage(scaled(reference->GetMovingImage()));
+    if (deviceSolve)
+    {
+      method->SetDeviceSolverMinimumDegreesOfFreedom(0);
+    }
+    ASSERT_NO_THROW(method->Update()) << exponent;
+    EXPECT_EQ(method->GetBackendUsed(), Backend::CUDA);
+    const double difference = MaxDifferenceInVoxels(reference->GetDisplacementField(), method->GetDisplacementField());
+    std::cout << "2^" << exponent << " x intensities: field difference " << difference << " voxel, SSD "
+              << method->GetFinalSSD() << " = 2^" << 2 * exponent << " x "
+              << std::ldexp(method->GetFinalSSD(), -2 * exponent) << " (unscaled " << reference->GetFinalSSD() << ")"
+              << std::endl;
+    EXPECT_LT(difference, 1e-4) << exponent;
+    const double energyUnit = std::ldexp(1.0, 2 * exponent);
+    EXPECT_NEAR(
+      method->GetFinalSSD(), reference->GetFinalSSD() * energyUnit, 1e-6 * reference->GetFinalSSD() * energyUnit);
+    EXPECT_NEAR(method->GetBeta(), reference->GetBeta() * energyUnit, 1e-6 * reference->GetBeta() * energyUnit);
+    ASSERT_EQ(method->GetHistory().size(), reference->GetHistory().size());
+    EXPECT_NEAR(method->GetHistory().front().ssd,
+                reference->GetHistory().front().ssd * energyUnit,
+                1e-6 * reference->GetHistory().front().ssd * energyUnit);
+  }
+  EXPECT_LT(reference->GetFinalSSD(), 0.8 * reference->GetHistory().front().ssd); // it registered
+}
 } // namespace
 
 TEST(CudaRegistration, DevicePyramidEqualsCPU2D)
@@ -759,4 +811,16 @@ TEST(CudaRegistration, RegularMeshRunMatchesCPU3D)
 {
   DMR_REQUIRE_DEVICE();
   RunsAgree<3>(MeshMode::Regular, 125, 30, 40);
+}
+
+TEST(CudaRegistration, TheIntensityUnitDoesNotChangeTheRegistration2D)
+{
+  DMR_REQUIRE_DEVICE();
+  IntensityUnitDoesNotChangeTheRun<2>(40, 30, 96, false);
+}
+
+TEST(CudaRegistration, TheIntensityUnitDoesNotChangeTheRegistration3D)
+{
+  DMR_REQUIRE_DEVICE();
+  IntensityUnitDoesNotChangeTheRun<3>(150, 20, 40, true);
 }

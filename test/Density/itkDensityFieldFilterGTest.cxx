@@ -591,6 +591,71 @@ TEST(DensityFieldFilter, DensityIsSquaredForcePlusAlpha)
 // Regression test (a fixed bug): BuildPyramids() reuses its cached
 // pyramids when m_PyramidTime >= max(fixed MTime, moving MTime) and the pixel count matches, so a different input
 // image that is older than the cached ones (here: created first) is ignored; SSD is 184760 instead of 0.
+TEST(DensityFieldFilter, IntensitiesBeyondSinglePrecisionAreScaledExactly)
+{
+  // |f|^2 grows with the fourth power of the intensities: blobs of height 2^70 (about 1e21) overflowed the float
+  // density, blobs of height 2^-70 left only alpha in it. The filter scales such images by a power of two: the
+  // density, force, SSD and MSSD are then those of the ordinary images times exact powers of two.
+  const ImageType::SizeType size{ { 40, 32 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto                      fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  auto reference = FilterType::New();
+  reference->SetFixedImage(fixed);
+  reference->SetMovingImage(moving);
+  reference->Update();
+  EXPECT_EQ(reference->GetIntensityScale(), 1.0); // ordinary intensities are not scaled
+  const size_t n = size[0] * size[1];
+  for (const int exponent : { 70, -70, 10 })
+  {
+    auto scaled = [&](const ImageType * image) {
+      auto out = itk::dmr::test::MakeImage<ImageType>(
+        size, Spacing(1, 1.5), Origin(0, 0), identity, [](const ImageType::PointType &) { return 0.0; });
+      for (size_t p = 0; p < n; ++p)
+      {
+        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
+      }
+      return out;
+    };
+    auto filter = FilterType::New();
+    filter->SetFixedImage(scaled(fixed));
+    filter->SetMovingImage(scaled(moving));
+    filter->Update();
+    // the reference's force scale 2 R^2 / h is about 2^14, the scaled images' 2^(14 + 2 exponent): only beyond 2^40
+    // are they scaled
+    const double s = filter->GetIntensityScale();
+    EXPECT_EQ(s == 1.0, exponent == 10) << exponent;
+    const double c = std::ldexp(s, exponent); // the working images are the reference's times c
+    EXPECT_EQ(c, std::exp2(std::round(std::log2(c)))) << "a power of two";
+    EXPECT_EQ(filter->GetSSD(), reference->GetSSD() * c * c) << exponent;
+    EXPECT_EQ(filter->GetMSSD(), reference->GetMSSD() * c * c) << exponent;
+    EXPECT_EQ(filter->GetAlpha(), reference->GetAlpha() * c * c * c * c) << exponent;
+    const auto * density = filter->GetOutput()->GetBufferPointer();
+    const auto * expected = reference->GetOutput()->GetBufferPointer();
+    for (size_t p = 0; p < n; ++p)
+    {
+      ASSERT_TRUE(std::isfinite(density[p]) && density[p] > 0.0f) << exponent << " pixel " << p;
+      ASSERT_EQ(density[p], static_cast<float>(expected[p] * c * c * c * c)) << exponent << " pixel " << p;
+      for (unsigned int k = 0; k < 2; ++k)
+      {
+        ASSERT_EQ(filter->GetForceField()->GetBufferPointer()[p][k],
+                  static_cast<float>(reference->GetForceField()->GetBufferPointer()[p][k] * c * c))
+          << exponent << " pixel " << p;
+      }
+    }
+    // the warped moving image keeps the image's own intensities
+    std::vector<float> warped, warpedReference;
+    filter->WarpMovingImage(nullptr, warped);
+    reference->WarpMovingImage(nullptr, warpedReference);
+    for (size_t p = 0; p < n; ++p)
+    {
+      ASSERT_EQ(warped[p], std::ldexp(warpedReference[p], exponent)) << exponent << " pixel " << p;
+    }
+  }
+}
+
 TEST(DensityFieldFilter, SwappingInAnotherImageOfTheSameSizeIsSeen)
 {
   // the pyramids are cached between updates; a different moving image must not reuse the old ones

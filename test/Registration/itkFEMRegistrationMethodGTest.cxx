@@ -213,6 +213,54 @@ TEST(FEMRegistrationMethod, DoubleImagesGiveTheFieldOfFloatImages)
   EXPECT_LT(difference, 1e-4);
 }
 
+TEST(FEMRegistrationMethod, TheIntensityUnitDoesNotChangeTheRegistration)
+{
+  // Beta and alpha follow the force, so the method does not depend on the intensities' unit. Images of height 2^70
+  // (about 1e21) overflowed the float density ("the density must be positive and finite") and images of height
+  // 2^-70 left only alpha in it (a uniform mesh, another result). Scaled by a power of two, the pair must give the
+  // same field, bit for bit, with energies and beta in the images' units.
+  auto reference = SmallRegistration(MeshMode::Dynamic, 20);
+  reference->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  reference->Update();
+  const size_t n = reference->GetFixedImage()->GetLargestPossibleRegion().GetNumberOfPixels();
+  for (const int exponent : { 70, -70 })
+  {
+    auto scaled = [&](const ImageType * image) {
+      auto out = ImageType::New();
+      out->SetRegions(image->GetLargestPossibleRegion());
+      out->CopyInformation(image);
+      out->Allocate();
+      for (size_t p = 0; p < n; ++p)
+      {
+        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
+      }
+      return out;
+    };
+    auto method = SmallRegistration(MeshMode::Dynamic, 20);
+    method->SetFixedImage(scaled(reference->GetFixedImage()));
+    method->SetMovingImage(scaled(reference->GetMovingImage()));
+    method->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+    ASSERT_NO_THROW(method->Update()) << exponent;
+    const auto * a = reference->GetDisplacementField()->GetBufferPointer();
+    const auto * b = method->GetDisplacementField()->GetBufferPointer();
+    for (size_t p = 0; p < n; ++p)
+    {
+      ASSERT_EQ(a[p], b[p]) << exponent << " pixel " << p;
+    }
+    const double energyUnit = std::ldexp(1.0, 2 * exponent);
+    ASSERT_EQ(method->GetHistory().size(), reference->GetHistory().size());
+    for (size_t i = 0; i < reference->GetHistory().size(); ++i)
+    {
+      EXPECT_EQ(method->GetHistory()[i].ssd, reference->GetHistory()[i].ssd * energyUnit) << exponent << " " << i;
+      EXPECT_EQ(method->GetHistory()[i].mssd, reference->GetHistory()[i].mssd * energyUnit) << exponent << " " << i;
+      EXPECT_EQ(method->GetHistory()[i].total, reference->GetHistory()[i].total * energyUnit) << exponent << " " << i;
+    }
+    EXPECT_EQ(method->GetFinalSSD(), reference->GetFinalSSD() * energyUnit) << exponent;
+    EXPECT_EQ(method->GetBeta(), reference->GetBeta() * energyUnit) << exponent;
+  }
+  EXPECT_LT(reference->GetFinalSSD(), 0.8 * reference->GetHistory().front().ssd); // it registered
+}
+
 TEST(FEMRegistrationMethod, MSSDDecreasesOverTheRun)
 {
   auto method = SmallRegistration(MeshMode::Dynamic, 30);

@@ -57,6 +57,16 @@ namespace itk
  * them (docs/benchmarks.md, circle to epsilon: Dice 0.917 mapped vs 0.985 warped). grad u is taken by central
  * differences of the field (one-sided at the image border), per mm.
  *
+ * Intensity scale: the density and the force are stored in single precision, and |f|^2 grows with the fourth power
+ * of the intensities: an intensity range R beyond about 1e9 overflows it and one below about 1e-9 leaves nothing but
+ * alpha. The method does not depend on the intensities' unit (beta and alpha follow the force), so when the force
+ * scale 2 R^2 / (smallest fixed spacing), R the larger of the two images' ranges, lies outside [2^-40, 2^40], the
+ * filter works on both images multiplied by a power of two s (GetIntensityScale(), 1 otherwise) that brings the force
+ * scale to about 1. Every result then refers to the scaled images: the force is s^2 f, the density s^4 d, SSD and
+ * MSSD are s^2 times the images', the mean |f|^2 and alpha s^4 times (a fixed Alpha is taken in these units too).
+ * WarpMovingImage() gives the image's own intensities. Multiplying by a power of two is exact, so images whose
+ * intensities differ by a power of two give the same density up to that factor and the same registration.
+ *
  * \par References
  * Y. Cai, X. Guo, Z. Zhong, W. Mao, "Dynamic meshing for deformable image registration", Computer-Aided Design 58
  * (2015) 141-150, doi:10.1016/j.cad.2014.08.009.
@@ -128,10 +138,13 @@ public:
   void
   ReleaseInternalBuffers();
 
-  /** Results of the last update. */
+  /** Results of the last update (of the images scaled by GetIntensityScale()). */
   itkGetConstMacro(MSSD, double);
   itkGetConstMacro(SSD, double);
   itkGetConstMacro(MeanSquaredForce, double);
+  /** The power of two the images are multiplied by (see the class description): 1 unless their intensity range
+   * would take |f|^2 out of single precision. Set when the pyramids are built (GetPyramid or Update). */
+  itkGetConstMacro(IntensityScale, double);
 
   /** The force field f (physical frame). */
   ForceFieldType *
@@ -223,6 +236,7 @@ private:
   double            m_MSSD{ 0.0 };
   double            m_SSD{ 0.0 };
   double            m_MeanSquaredForce{ 0.0 };
+  double            m_IntensityScale{ 1.0 };
 
   std::vector<PyramidLevel> m_Levels;
   ModifiedTimeType          m_PyramidTime{ 0 };
@@ -230,7 +244,7 @@ private:
   bool                      m_PyramidComplete{ false }; // every level holds its images and moving gradient
   const void *              m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
   const void *              m_PyramidMoving{ nullptr };
-  double                    m_IntensityRange{ 0.0 };
+  double                    m_IntensityRange{ 0.0 }; // of the moving image, times the intensity scale
   std::vector<float>        m_GridForce;
   // levels 1.. of the fixed pyramid interpolated at every fine pixel (they do not depend on the field; built on the
   // first GenerateData after the pyramids where they take at most 256 MiB, else interpolated every time)

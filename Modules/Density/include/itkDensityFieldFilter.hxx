@@ -25,6 +25,7 @@
 #include "itkImageAlgorithm.h"
 #include "itkProgressReporter.h"
 #include "dmrImageMetrics.h"
+#include <cmath>
 #include <numeric>
 
 namespace itk
@@ -261,6 +262,36 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
   m_Levels.clear();
   m_Levels.resize(m_NumberOfLevels);
 
+  // The intensity scale (class description): a power of two that brings the force scale 2 R^2 / h to about 1 when it
+  // is outside [2^-40, 2^40], so that |f|^2 (up to ~1e4 force scales squared) and alpha (down to 1e-12 of it) stay
+  // normal floats. Exact, so results do not change otherwise.
+  const auto   fixedRange = dmr::IntensityRange(fixed);
+  const auto   movingRange = dmr::IntensityRange(moving);
+  const double range = std::max(fixedRange.second - fixedRange.first, movingRange.second - movingRange.first);
+  double       minSpacing = fixed->GetSpacing()[0];
+  for (unsigned int k = 1; k < ImageDimension; ++k)
+  {
+    minSpacing = std::min(minSpacing, static_cast<double>(fixed->GetSpacing()[k]));
+  }
+  const double forceScale = 2.0 * range * range / minSpacing;
+  m_IntensityScale = 1.0;
+  if (forceScale > 0.0 && std::isfinite(forceScale) && std::abs(std::ilogb(forceScale)) > 40)
+  {
+    m_IntensityScale = std::ldexp(1.0, -(std::ilogb(forceScale) / 2));
+  }
+  const float scale = static_cast<float>(m_IntensityScale);
+  auto        applyScale = [this, scale](float * values, size_t count) {
+    if (scale != 1.0f)
+    {
+      dmr::ParallelForChunks(this->GetMultiThreader(), count, [&](size_t b, size_t e) {
+        for (size_t p = b; p < e; ++p)
+        {
+          values[p] *= scale;
+        }
+      });
+    }
+  };
+
   const auto & dirF = fixed->GetDirection();
   const auto & dirM = moving->GetDirection();
   double       R[ImageDimension][ImageDimension]; // moving grid frame -> fixed grid frame
@@ -277,7 +308,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
     }
   }
 
-  auto toFloat = [this](const auto * image) {
+  auto toFloat = [this, &applyScale](const auto * image) {
     using InImageType = std::remove_cv_t<std::remove_pointer_t<decltype(image)>>;
     auto cast = CastImageFilter<InImageType, FloatImageType>::New();
     cast->SetInput(image);
@@ -285,6 +316,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
     cast->Update();
     typename FloatImageType::Pointer out = cast->GetOutput();
     out->DisconnectPipeline();
+    applyScale(out->GetBufferPointer(), out->GetBufferedRegion().GetNumberOfPixels());
     return out;
   };
   // level l: ShrinkImageFilter(DiscreteGaussianImageFilter(image)) with sigma = 0.5 x shrink factor pixels, as ITK's
@@ -329,6 +361,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
         m->SetRegions(moving->GetLargestPossibleRegion());
         dmr::CopyToFloat(fixed, L.fixed); // the cast's floats (static_cast), without the cast image
         dmr::CopyToFloat(moving, L.moving);
+        applyScale(L.fixed.data(), L.fixed.size());
+        applyScale(L.moving.data(), L.moving.size());
       }
     }
     else
@@ -372,8 +406,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
       }
     }
   }
-  const auto range = dmr::IntensityRange(moving);
-  m_IntensityRange = range.second - range.first;
+  m_IntensityRange = m_IntensityScale * (movingRange.second - movingRange.first);
   m_PyramidTime = inputTime;
   m_PyramidFixed = fixed;
   m_PyramidMoving = moving;
@@ -642,7 +675,7 @@ DensityFieldFilter<TF, TM, TD, TO>::WarpMovingImage(const DisplacementFieldType 
         }
       }
       double s = 0.0;
-      dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0, &s);
+      dmr::InterpolateAdd<D, 1>(L.movingGrid, L.moving.data(), cm, 1.0 / m_IntensityScale, &s);
       out[p] = static_cast<float>(s);
     }
   });
@@ -678,6 +711,7 @@ DensityFieldFilter<TF, TM, TD, TO>::PrintSelf(std::ostream & os, Indent indent) 
   os << indent << "MSSD: " << m_MSSD << std::endl;
   os << indent << "SSD: " << m_SSD << std::endl;
   os << indent << "MeanSquaredForce: " << m_MeanSquaredForce << std::endl;
+  os << indent << "IntensityScale: " << m_IntensityScale << std::endl;
 }
 } // namespace itk
 

@@ -209,8 +209,14 @@ public:
   itkGetConstMacro(DevicePeakBytes, SizeValueType);
   itkGetConstMacro(DeviceUsedAtPeakBytes, SizeValueType);
 
-  /** Results. */
-  itkGetConstMacro(Beta, double);
+  /** Results. Energies (the history's MSSD, SSD and totals, the final SSD and MSSD, and beta, which weighs the
+   * elastic energy against them) are in the images' own intensity units, also when the density filter works on
+   * scaled images (DensityFieldFilter::GetIntensityScale()). */
+  double
+  GetBeta() const
+  {
+    return m_Beta * m_EnergyToImageUnits;
+  }
   itkGetConstMacro(CurrentIteration, unsigned int);
   const std::vector<IterationRecord> &
   GetHistory() const
@@ -300,6 +306,10 @@ private:
   template <typename TSolve>
   bool
   SolveAndSetBeta(const std::vector<double> & nodalForce, std::vector<double> & nodalU, double mssd, TSolve && solve);
+  /** Appends an iteration's record to the history with its energies converted to the images' intensity units (the
+   * iteration itself works in the density filter's units, in which the force, beta and the MSSD agree). */
+  void
+  AppendToHistory(IterationRecord record);
   /** The step safeguard, one rule for both back-ends: tries W o exp(s u) for s = 1, 1/2, ... while the candidate's
    * MSSD is above record.mssd (at most MaximumStepHalvings halvings; none checked when it is 0). apply(s) makes the
    * candidate for s and returns its largest update (pixels); candidateMSSD() evaluates the force at the candidate and
@@ -339,7 +349,8 @@ private:
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
 
-  double                       m_Beta{ 0.0 };
+  double                       m_Beta{ 0.0 };               // in the density filter's units; GetBeta() converts
+  double                       m_EnergyToImageUnits{ 1.0 }; // 1 / intensity scale^2 of the run
   unsigned int                 m_CurrentIteration{ 0 };
   double                       m_FinalSSD{ 0.0 };
   double                       m_FinalMSSD{ 0.0 };

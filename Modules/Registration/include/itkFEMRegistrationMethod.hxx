@@ -356,7 +356,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
         }))
     {
       // the images already match (no force), or a later dynamic mesh has no free node: nothing more to register
-      m_History.push_back(record);
+      this->AppendToHistory(record);
       m_Timing.registration += seconds(t0, Clock::now());
       break;
     }
@@ -407,7 +407,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     }
     m_Timing.registration += seconds(t0, Clock::now());
 
-    m_History.push_back(record);
+    this->AppendToHistory(record);
     this->InvokeEvent(IterationEvent());
     this->UpdateProgress(static_cast<float>(it) / static_cast<float>(m_NumberOfIterations));
   }
@@ -420,8 +420,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     m_DensityFilter->Update();
     m_Timing.force += seconds(t0, Clock::now());
   }
-  m_FinalSSD = m_DensityFilter->GetSSD() * dV;
-  m_FinalMSSD = m_DensityFilter->GetMSSD() * dV;
+  m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
+  m_FinalSSD = m_DensityFilter->GetSSD() * dV * m_EnergyToImageUnits;
+  m_FinalMSSD = m_DensityFilter->GetMSSD() * dV * m_EnergyToImageUnits;
   m_Timing.registration += seconds(t0, Clock::now());
   // free the per-voxel working memory before the transform's double copy of the field is made (peak RSS)
   for (auto * v : { &w, &update, &expUpdate })
@@ -471,8 +472,21 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_History.clear();
   m_Timing = Timing();
   m_Beta = 0.0;
+  m_EnergyToImageUnits = 1.0;
   m_CurrentMesh = nullptr;
   ++m_CurrentMeshVersion;
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::AppendToHistory(IterationRecord record)
+{
+  const double scale = m_DensityFilter->GetIntensityScale(); // set by the pyramids, built before any record
+  m_EnergyToImageUnits = 1.0 / (scale * scale);
+  record.mssd *= m_EnergyToImageUnits;
+  record.ssd *= m_EnergyToImageUnits;
+  record.total *= m_EnergyToImageUnits;
+  m_History.push_back(record);
 }
 
 template <typename TF, typename TM, typename TD>
@@ -985,7 +999,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     if (!solved)
     {
       // the images already match (no force), or a later dynamic mesh has no free node: nothing more to register
-      m_History.push_back(record);
+      this->AppendToHistory(record);
       m_Timing.registration += seconds(t0, Clock::now());
       break;
     }
@@ -1024,7 +1038,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       });
     m_Timing.registration += seconds(t0, Clock::now());
 
-    m_History.push_back(record);
+    this->AppendToHistory(record);
     this->InvokeEvent(IterationEvent());
     this->UpdateProgress(static_cast<float>(it) / static_cast<float>(m_NumberOfIterations));
   }
@@ -1036,8 +1050,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "final force");
     m_Timing.force += seconds(t0, Clock::now());
   }
-  m_FinalSSD = statistics.ssd * dV;
-  m_FinalMSSD = statistics.mssd * dV;
+  m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
+  m_FinalSSD = statistics.ssd * dV * m_EnergyToImageUnits;
+  m_FinalMSSD = statistics.mssd * dV * m_EnergyToImageUnits;
   using FieldValueType = typename DisplacementFieldType::PixelType::ValueType;
   if constexpr (std::is_same_v<FieldValueType, float> &&
                 sizeof(typename DisplacementFieldType::PixelType) == D * sizeof(float))
@@ -1104,7 +1119,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
-  os << indent << "Beta: " << m_Beta << std::endl;
+  os << indent << "Beta: " << this->GetBeta() << std::endl;
   os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;
   os << indent << "FinalMSSD: " << m_FinalMSSD << std::endl;
