@@ -28,6 +28,7 @@
 #include "itkImageFileReader.h"
 #include "itkImageSeriesReader.h"
 #include "itkMacro.h"
+#include "itkMetaDataObject.h"
 #include "itkImageIOFactory.h"
 #include "itkBuildInformation.h"
 #include "itkFloatingPointExceptions.h"
@@ -42,6 +43,7 @@
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
 #include <future>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -68,7 +70,11 @@ InitializeItkGlobals()
   itk::BuildInformation::GetInstance();                                  // BuildInformationGlobals
 }
 
-/** Slice files of the first DICOM series in directory, ordered by position; throws when there is none. */
+/** Slice files of the one DICOM series in directory, ordered by position. Throws when there is none, and when there
+ * are several: picking one of them (GDCM's first) registered another volume than the user meant without a word, e.g.
+ * every other slice of a directory where two series are mixed. GDCM tells series apart by Series Instance UID and,
+ * with its series details, by size, orientation and slice thickness, so a series whose slices differ there is
+ * refused too. */
 inline std::vector<std::string>
 DicomSeriesFileNames(const std::string & directory)
 {
@@ -80,12 +86,59 @@ DicomSeriesFileNames(const std::string & directory)
   {
     itkGenericExceptionMacro(<< "directory holds no DICOM series: " << directory);
   }
+  if (uids.size() > 1)
+  {
+    std::ostringstream list;
+    for (size_t i = 0; i < uids.size() && i < 4; ++i)
+    {
+      list << (i ? "; " : "") << uids[i] << " (" << names->GetFileNames(uids[i]).size() << " slices)";
+    }
+    list << (uids.size() > 4 ? "; ..." : "");
+    throw itk::ExceptionObject(__FILE__,
+                               __LINE__,
+                               directory + " holds " + std::to_string(uids.size()) +
+                                 " DICOM series (told apart by Series Instance UID, size, orientation or slice "
+                                 "thickness): " +
+                                 list.str() + "; give a directory that holds only the series to register",
+                               ITK_LOCATION);
+  }
   auto files = names->GetFileNames(uids.front());
   if (files.empty())
   {
     itkGenericExceptionMacro(<< "DICOM series without files in " << directory);
   }
   return files;
+}
+
+/** Largest deviation of a DICOM series' slice gaps from its spacing (the mean gap) that is accepted, relative to the
+ * spacing: the position strings' rounding stays far below it, a missing or repeated slice (a deviation of a whole
+ * spacing) or a series with two slice spacings is far above it. */
+constexpr double DicomSliceGapTolerance = 0.05;
+
+/** Throws when the slices of a series just read by ITK's series reader are not evenly spaced. The reader builds a
+ * volume with the mean gap as its spacing and only warns (a warning the tools do not show), so a missing slice moved
+ * every slice after it by up to a whole spacing in physical space, silently. */
+template <typename TImage>
+void
+CheckDicomSliceSpacing(const std::string & directory, const TImage * image)
+{
+  double deviation = 0.0;
+  if (!itk::ExposeMetaData<double>(image->GetMetaDataDictionary(), "ITK_non_uniform_sampling_deviation", deviation))
+  {
+    return; // every gap equals the spacing
+  }
+  constexpr unsigned int sliceAxis = TImage::ImageDimension - 1;
+  const double           spacing = image->GetSpacing()[sliceAxis];
+  if (deviation > DicomSliceGapTolerance * spacing)
+  {
+    std::ostringstream message;
+    message << "the DICOM series in " << directory
+            << " has a missing slice or uneven slice positions: a gap between neighbouring slices differs from the "
+               "mean gap ("
+            << spacing << " mm) by " << deviation << " mm; give a complete series, or resample it to an even spacing "
+            << "first";
+    throw itk::ExceptionObject(__FILE__, __LINE__, message.str(), ITK_LOCATION);
+  }
 }
 
 /** True when the gzip file at path decompresses to the end of its stream with a valid trailer. ITK's readers do not
@@ -126,6 +179,7 @@ ReadImageOrDicomSeries(const std::string & path)
     reader->SetImageIO(itk::GDCMImageIO::New());
     reader->SetFileNames(DicomSeriesFileNames(path));
     reader->Update();
+    CheckDicomSliceSpacing(path, reader->GetOutput());
     return reader->GetOutput();
   }
   std::future<bool> complete;
@@ -167,11 +221,13 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
   }
   if (itksys::SystemTools::FileIsDirectory(path))
   {
-    auto names = itk::GDCMSeriesFileNames::New();
-    names->SetDirectory(path);
-    if (names->GetSeriesUIDs().empty())
+    try
     {
-      throw UsageError("directory holds no DICOM series: " + path);
+      DicomSeriesFileNames(path); // one series (the slices' headers are read again with the images)
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError(e.GetDescription());
     }
     return 3;
   }

@@ -27,6 +27,8 @@
 #include "itkImageFileWriter.h"
 #include "itkImageSeriesReader.h"
 #include "gtest/gtest.h"
+#include <fstream>
+#include <iterator>
 
 namespace
 {
@@ -114,6 +116,78 @@ TEST(ThoraxCT, DicomSeriesGeometryMatchesItsNiftiConversion)
                          dicom->GetBufferPointer() + dicom->GetLargestPossibleRegion().GetNumberOfPixels(),
                          back->GetBufferPointer()))
     << "voxel values differ after the NIfTI round trip";
+}
+
+TEST(ThoraxCT, IncompleteAndMixedSeriesAreRefused)
+{
+  const std::string dir = ThoraxFolder();
+  if (dir.empty())
+  {
+    GTEST_SKIP() << "no shared data (set DMR_SHARED_DATA_DIR): " << dmrtest::SharedDataDir();
+  }
+  const auto                files = dmrtools::DicomSeriesFileNames(dir); // ordered by position
+  dmrtest::ScratchDirectory scratch("series");
+  auto                      link = [](const std::string & file, const std::string & into) {
+    ASSERT_TRUE(itksys::SystemTools::CreateSymlink(file, into + "/" + itksys::SystemTools::GetFilenameName(file)));
+  };
+  // one slice missing in the middle: ITK's series reader spaces the slices evenly with the mean gap and only warns,
+  // so the slices after the gap were put up to a whole spacing (2 mm) away from where they were scanned
+  const std::string missing = scratch.Path() + "/missing";
+  itksys::SystemTools::MakeDirectory(missing);
+  for (size_t s = 0; s < files.size(); ++s)
+  {
+    if (s != files.size() / 2)
+    {
+      link(files[s], missing);
+    }
+  }
+  try
+  {
+    dmrtools::ReadImageOrDicomSeries<CTImageType>(missing);
+    ADD_FAILURE() << "a series with a missing slice was read";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("missing slice"), std::string::npos) << e.GetDescription();
+  }
+  // two series in one directory: one slice carries another Series Instance UID (its last digit changed). GDCM's
+  // first series was read without a word.
+  const std::string mixed = scratch.Path() + "/mixed";
+  itksys::SystemTools::MakeDirectory(mixed);
+  for (size_t s = 1; s < files.size(); ++s)
+  {
+    link(files[s], mixed);
+  }
+  {
+    std::ifstream     in(files[0], std::ios::binary);
+    std::string       bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const std::string seriesUidTag("\x20\x00\x0e\x00", 4); // (0020,000E), implicit VR little endian
+    const size_t      at = bytes.find(seriesUidTag);
+    ASSERT_NE(at, std::string::npos);
+    const uint32_t length = static_cast<uint8_t>(bytes[at + 4]) | (static_cast<uint8_t>(bytes[at + 5]) << 8);
+    size_t         last = at + 8 + length - 1;
+    if (bytes[last] == '\0')
+    {
+      --last; // the padding of an odd-length UID
+    }
+    bytes[last] = bytes[last] == '7' ? '8' : '7';
+    std::ofstream(mixed + "/" + itksys::SystemTools::GetFilenameName(files[0]), std::ios::binary) << bytes;
+  }
+  EXPECT_THROW(dmrtools::ImageDimensionOf(mixed), dmrtools::UsageError);
+  try
+  {
+    dmrtools::ReadImageOrDicomSeries<CTImageType>(mixed);
+    ADD_FAILURE() << "one of two series was read";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    const std::string message = e.GetDescription();
+    EXPECT_NE(message.find("holds 2 DICOM series"), std::string::npos) << message;
+    EXPECT_NE(message.find("(140 slices)"), std::string::npos) << message;
+    EXPECT_NE(message.find("(1 slices)"), std::string::npos) << message;
+  }
+  // the complete series reads (DicomSeriesGeometryMatchesItsNiftiConversion checks its geometry)
+  EXPECT_EQ(dmrtools::ImageDimensionOf(dir), 3u);
 }
 
 TEST(ThoraxCT, LungMaskHasPlausibleVolume)
