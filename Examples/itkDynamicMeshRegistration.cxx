@@ -646,10 +646,13 @@ Run(const Options & opt)
       return dmrtools::ReadImageOrDicomSeries<ReadType>(path);
     });
   };
-  std::future<typename MaskType::Pointer> maskRead;
+  // The mask is read as float and taken as non-zero = inside here: read as unsigned char, ITK's cast made a soft mask's
+  // 0.7 and a label 256 zero (outside) and a NaN undefined.
+  using MaskReadType = itk::Image<float, D>;
+  std::future<typename MaskReadType::Pointer> maskRead;
   if (!opt.fixedMask.empty())
   {
-    maskRead = readOptional(typename MaskType::Pointer(), opt.fixedMask, "--fixed-mask");
+    maskRead = readOptional(typename MaskReadType::Pointer(), opt.fixedMask, "--fixed-mask");
   }
   std::future<typename FieldType::Pointer> truthRead;
   if (!opt.truthDisplacement.empty())
@@ -731,24 +734,43 @@ Run(const Options & opt)
   typename MaskType::Pointer mask;
   if (maskRead.valid())
   {
+    typename MaskReadType::Pointer values;
     try
     {
-      mask = maskRead.get();
+      values = maskRead.get();
     }
     catch (const itk::ExceptionObject & e)
     {
       throw UsageError("cannot read --fixed-mask: " + std::string(e.GetDescription()));
     }
+    if (const auto p = itk::dmr::FirstNonFinitePixel(values.GetPointer()); p >= 0)
+    {
+      std::ostringstream where;
+      where << values->ComputeIndex(static_cast<itk::OffsetValueType>(p));
+      throw UsageError("--fixed-mask has a non-finite value at voxel " + where.str() + ": " + opt.fixedMask);
+    }
+    mask = MaskType::New();
+    mask->CopyInformation(values);
+    mask->SetRegions(values->GetLargestPossibleRegion());
+    mask->Allocate();
+    {
+      const float *   v = values->GetBufferPointer();
+      unsigned char * m = mask->GetBufferPointer();
+      for (size_t p = 0, count = mask->GetBufferedRegion().GetNumberOfPixels(); p < count; ++p)
+      {
+        m[p] = v[p] != 0.0f ? 1 : 0;
+      }
+    }
+    values = nullptr;
     if (!dmrtools::SameGrid<D>(fixed.GetPointer(), mask.GetPointer()))
     {
       mask = ResampleOnto(mask.GetPointer(), fixed.GetPointer(), true, 0);
     }
-    size_t          inside = 0;
-    unsigned char * m = mask->GetBufferPointer();
+    size_t                inside = 0;
+    const unsigned char * m = mask->GetBufferPointer();
     for (size_t p = 0, count = mask->GetBufferedRegion().GetNumberOfPixels(); p < count; ++p)
     {
-      m[p] = m[p] != 0 ? 1 : 0;
-      inside += m[p];
+      inside += m[p] != 0 ? 1 : 0;
     }
     if (inside == 0)
     {

@@ -22,7 +22,8 @@
 //   dmrExampleCheck min-above A T          exit 0 iff every pixel (every component) of A is > T
 //   dmrExampleCheck make-3d OUT [SHIFT]    writes a 16x12x10 float image with a gradient and a bright cube (moved by
 //                                          SHIFT voxels along x)
-//   dmrExampleCheck make-3d-mask OUT       writes a mask of the inner part of that image on a coarser grid (spacing 2)
+//   dmrExampleCheck make-3d-mask OUT [V]   writes a mask of the inner part of that image on a coarser grid (spacing 2),
+//                                          float, V (default 1) inside and 0 outside
 //   dmrExampleCheck make-constant OUT      writes a 32x32 float image that is 7 everywhere
 //   dmrExampleCheck make-2d OUT            writes a 32x32 float image with a gradient and a bright square
 //   dmrExampleCheck make-2d-byte OUT [SHIFT]  the same as unsigned char (e.g. a .png), the square moved by SHIFT
@@ -206,9 +207,10 @@ Make3D(const std::string & path, int shift, unsigned int depth = 10)
 }
 
 int
-Make3DMask(const std::string & path)
+Make3DMask(const std::string & path, double inside)
 {
-  using MaskType = itk::Image<unsigned char, 3>;
+  // float, so that an inside value such as 0.5 or 256 is stored as given
+  using MaskType = itk::Image<float, 3>;
   auto               mask = MaskType::New();
   MaskType::SizeType size{ { 8, 6, 5 } };
   mask->SetRegions(MaskType::RegionType(size));
@@ -222,7 +224,7 @@ Make3DMask(const std::string & path)
   for (itk::ImageRegionIteratorWithIndex<MaskType> it(mask, mask->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
   {
     const auto & idx = it.GetIndex();
-    it.Set(idx[0] >= 1 && idx[0] < 7 && idx[1] >= 1 && idx[1] < 5 && idx[2] >= 1 && idx[2] < 4 ? 1 : 0);
+    it.Set(idx[0] >= 1 && idx[0] < 7 && idx[1] >= 1 && idx[1] < 5 && idx[2] >= 1 && idx[2] < 4 ? inside : 0.0);
   }
   auto writer = itk::ImageFileWriter<MaskType>::New();
   writer->SetInput(mask);
@@ -288,7 +290,7 @@ int
 Usage()
 {
   std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | "
-               "make-3d-thin OUT | make-3d-mask OUT | "
+               "make-3d-thin OUT | make-3d-mask OUT [VALUE] | "
                "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
                "make-constant OUT\n";
   return 2;
@@ -313,9 +315,9 @@ main(int argc, char * argv[])
     {
       return Make3D(argv[2], 0, 3); // 16 x 12 x 3: fewer than the 4 voxels per axis a registration needs
     }
-    if (mode == "make-3d-mask" && argc == 3)
+    if (mode == "make-3d-mask" && (argc == 3 || argc == 4))
     {
-      return Make3DMask(argv[2]);
+      return Make3DMask(argv[2], argc == 4 ? std::atof(argv[3]) : 1.0);
     }
     if (mode == "make-constant" && argc == 3)
     {

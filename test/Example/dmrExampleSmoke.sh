@@ -368,6 +368,16 @@ run-3d)
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 dynamic 20 3 "$W/fixed3d.nii.gz"
   check "report: fixed_mask recorded" grep -q '"fixed_mask": "' "$out/report.json"
+  # non-zero = inside, whatever the value: a soft mask's 0.5 and a label 256 were cast to 0 (outside) when the mask
+  # was read as unsigned char, and a NaN was undefined
+  for inside in 0.5 256; do
+    check "make a mask that is $inside inside" "$CHECK" make-3d-mask "$W/mask-$inside.nii.gz" "$inside"
+    run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-mask-$inside" --nodes 20 \
+      --iterations 5 --threads 2 --fixed-mask "$W/mask-$inside.nii.gz"
+    check "mask $inside inside: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+    check "mask $inside inside: the energies of the 0/1 mask's run" \
+      cmp "$out/energy.csv" "$W/out-mask-$inside/energy.csv"
+  done
   tre0=$(sed -n 's/^ *"tre_initial_mm": {"mean": \([-0-9.eE+]*\),.*/\1/p' "$out/report.json")
   tre1=$(sed -n 's/^ *"tre_mm": {"mean": \([-0-9.eE+]*\),.*/\1/p' "$out/report.json")
   echo "TRE mean before $tre0, after $tre1"
@@ -431,9 +441,14 @@ bad-non-finite)
   check "make a 32x32 finite partner" "$CHECK" make-2d "$W/image2d.nii.gz"
   expect_bad_input nan-fixed --fixed "$W/nan.mha" --moving "$W/image2d.nii.gz" --nodes 10 --iterations 2
   expect_bad_input nan-moving --fixed "$W/image2d.nii.gz" --moving "$W/nan.mha" --nodes 10 --iterations 2
+  expect_bad_input nan-mask --fixed "$W/image2d.nii.gz" --moving "$W/image2d.nii.gz" --fixed-mask "$W/nan.mha" \
+    --nodes 10 --iterations 2
   run_reg --fixed "$W/nan.mha" --moving "$W/image2d.nii.gz" --output-dir "$W/out-nan" --nodes 10 --iterations 2
   check "the message names the image and the voxel ($(cat "$W/stderr"))" \
     grep -q "the fixed image has a non-finite intensity (nan) at voxel \[5, 3\]" "$W/stderr"
+  run_reg --fixed "$W/image2d.nii.gz" --moving "$W/image2d.nii.gz" --fixed-mask "$W/nan.mha" --output-dir "$W/out-nan"
+  check "the message names the mask and the voxel ($(cat "$W/stderr"))" \
+    grep -q -- "--fixed-mask has a non-finite value at voxel \[5, 3\]" "$W/stderr"
   ;;
 bad-thin-image)
   check "make a 16x12x3 fixed image" "$CHECK" make-3d-thin "$W/thin.nii.gz"
