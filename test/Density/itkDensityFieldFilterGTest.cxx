@@ -25,6 +25,8 @@
 #include <vector>
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
+#include "itkRegionOfInterestImageFilter.h"
+#include "itkImageRegionConstIteratorWithIndex.h"
 #include "gtest/gtest.h"
 
 namespace
@@ -652,6 +654,59 @@ TEST(DensityFieldFilter, IntensitiesBeyondSinglePrecisionAreScaledExactly)
     for (size_t p = 0; p < n; ++p)
     {
       ASSERT_EQ(warped[p], std::ldexp(warpedReference[p], exponent)) << exponent << " pixel " << p;
+    }
+  }
+}
+
+TEST(DensityFieldFilter, ADownstreamRegionOfInterestGetsTheWholeOutputs)
+{
+  // A filter downstream that asks for a part of the density or of the force field (a region of interest, streaming):
+  // the density was allocated for that part and written for every pixel, past the end of its buffer.
+  const ImageType::SizeType size{ { 40, 32 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  auto                      fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
+  auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  auto whole = FilterType::New();
+  whole->SetFixedImage(fixed);
+  whole->SetMovingImage(moving);
+  whole->Update();
+  ImageType::RegionType part({ { 10, 12 } }, { { 20, 15 } });
+  for (const bool viaForce : { false, true })
+  {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(fixed);
+    filter->SetMovingImage(moving);
+    using ForceFieldType = FilterType::ForceFieldType;
+    auto densityPart = itk::RegionOfInterestImageFilter<ImageType, ImageType>::New();
+    auto forcePart = itk::RegionOfInterestImageFilter<ForceFieldType, ForceFieldType>::New();
+    densityPart->SetInput(filter->GetOutput());
+    densityPart->SetRegionOfInterest(part);
+    forcePart->SetInput(filter->GetForceField());
+    forcePart->SetRegionOfInterest(part);
+    if (viaForce)
+    {
+      forcePart->Update();
+    }
+    else
+    {
+      densityPart->Update();
+    }
+    EXPECT_EQ(filter->GetOutput()->GetBufferedRegion(), fixed->GetLargestPossibleRegion()) << viaForce;
+    EXPECT_EQ(filter->GetForceField()->GetBufferedRegion(), fixed->GetLargestPossibleRegion()) << viaForce;
+    EXPECT_EQ(filter->GetAlpha(), whole->GetAlpha()) << "alpha is the whole image's";
+    densityPart->Update();
+    forcePart->Update();
+    const auto * out = densityPart->GetOutput();
+    ASSERT_EQ(out->GetLargestPossibleRegion().GetSize(), part.GetSize());
+    for (itk::ImageRegionConstIteratorWithIndex<ImageType> it(out, out->GetLargestPossibleRegion()); !it.IsAtEnd();
+         ++it)
+    {
+      // the region of interest's output starts at index 0
+      const auto index = part.GetIndex() + (it.GetIndex() - out->GetLargestPossibleRegion().GetIndex());
+      ASSERT_EQ(it.Get(), whole->GetOutput()->GetPixel(index)) << index;
+      ASSERT_EQ(forcePart->GetOutput()->GetPixel(it.GetIndex()), whole->GetForceField()->GetPixel(index)) << index;
     }
   }
 }

@@ -216,6 +216,8 @@ protected:
   void
   GenerateInputRequestedRegion() override;
   void
+  EnlargeOutputRequestedRegion(DataObject * output) override;
+  void
   GenerateOutputInformation() override;
   void
   GenerateData() override;

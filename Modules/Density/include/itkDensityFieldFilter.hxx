@@ -107,6 +107,23 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateInputRequestedRegion()
 
 template <typename TF, typename TM, typename TD, typename TO>
 void
+DensityFieldFilter<TF, TM, TD, TO>::EnlargeOutputRequestedRegion(DataObject * output)
+{
+  // Every output is computed whole (alpha is a mean over the image): a downstream filter that asks for a part (a
+  // region of interest, streaming) gets the whole. Without this the density was allocated for the requested part and
+  // written for every pixel, past the end of its buffer.
+  Superclass::EnlargeOutputRequestedRegion(output);
+  for (auto & out : this->GetOutputs())
+  {
+    if (auto * image = dynamic_cast<ImageBase<ImageDimension> *>(out.GetPointer()))
+    {
+      image->SetRequestedRegionToLargestPossibleRegion();
+    }
+  }
+}
+
+template <typename TF, typename TM, typename TD, typename TO>
+void
 DensityFieldFilter<TF, TM, TD, TO>::GenerateOutputInformation()
 {
   Superclass::GenerateOutputInformation();
@@ -431,7 +448,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   const auto &                  dirF = fixed->GetDirection();
 
   DensityImageType * density = this->GetOutput();
-  density->SetBufferedRegion(density->GetRequestedRegion());
+  density->SetBufferedRegion(density->GetLargestPossibleRegion()); // EnlargeOutputRequestedRegion: all of it
   density->Allocate();
   ForceFieldType * force = this->GetForceField();
   if (m_ComputeForceField)
