@@ -20,12 +20,14 @@
 
 // Output of the command-line tools: nothing half-written reaches the output directory.
 #include "dmrToolErrors.h"
+#include "dmrImageFileCheck.h"
 #include "itkImageFileWriter.h"
 #include "itkMultiThreaderBase.h"
 #include "itksys/Directory.hxx"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
 #include <cstdio>
+#include <fstream>
 #include <stdexcept>
 #include <string>
 #include <unistd.h>
@@ -93,6 +95,43 @@ struct Staging
     }
   }
 };
+
+/** Writes text into the file at path and checks that all of it got there: a full disk shows only when the stream is
+ * flushed, and an unchecked std::ofstream left a cut energy.csv or report.json that was then committed as a result.
+ * Throws std::runtime_error when any of it could not be written. */
+inline void
+WriteTextFile(const std::string & path, const std::string & text)
+{
+  std::ofstream out(path, std::ios::binary | std::ios::trunc);
+  out << text;
+  out.close();
+  if (!out)
+  {
+    throw std::runtime_error("could not write " + path + " (not writable, or the disk is full)");
+  }
+}
+
+/** Writes text into the file at path through a temporary file next to it that is renamed onto path once all of it is
+ * written: path is either left as it was (an earlier report, or nothing) or holds the whole text, never a part.
+ * Throws std::runtime_error (after removing the temporary file) otherwise. */
+inline void
+ReplaceTextFile(const std::string & path, const std::string & text)
+{
+  const std::string partial = path + ".dmr-partial-" + std::to_string(::getpid());
+  try
+  {
+    WriteTextFile(partial, text);
+    if (std::rename(partial.c_str(), path.c_str()) != 0)
+    {
+      throw std::runtime_error("could not move " + partial + " onto " + path);
+    }
+  }
+  catch (...)
+  {
+    std::remove(partial.c_str());
+    throw;
+  }
+}
 
 /** Copies the file `in` to `out` gzip-compressed on all of ITK's work units: the data in chunks of `chunk` bytes, each
  * a complete gzip member, the members concatenated in order. RFC 1952 allows several members in one file and gzip
@@ -199,6 +238,16 @@ WriteImage(const TImage * image, const std::string & path)
   {
     try
     {
+      // ITK's NIfTI writer does not notice a short write (the NIfTI library only prints it): a full disk gave a cut
+      // file, which the compression would have carried into the output
+      try
+      {
+        CheckRawPixelDataIsComplete(raw, writer->GetImageIO());
+      }
+      catch (const itk::ExceptionObject &)
+      {
+        throw std::runtime_error("cannot write " + path + ": the file was cut short (is the disk full?)");
+      }
       GzipFileParallel(raw, path);
     }
     catch (...)

@@ -1009,7 +1009,7 @@ Run(const Options & opt)
   dmrtools::WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
 
   {
-    std::ofstream csv(staging.Path("energy.csv"));
+    std::ostringstream csv;
     csv << "iteration,mssd,ssd,elastic,total,nodes,cvt_sweeps,max_update_px,step_scale\n";
     csv << std::setprecision(10);
     for (const auto & r : history)
@@ -1017,16 +1017,18 @@ Run(const Options & opt)
       csv << r.iteration << ',' << r.mssd << ',' << r.ssd << ',' << r.elastic << ',' << r.total << ',' << r.nodes << ','
           << r.sweeps << ',' << r.maxUpdate << ',' << r.stepScale << '\n';
     }
+    dmrtools::WriteTextFile(staging.Path("energy.csv"), csv.str());
   }
 #ifdef DMR_WITH_VTK
   {
-    std::ofstream pvd(staging.Path("mesh.pvd"));
+    std::ostringstream pvd;
     pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
     for (const auto & m : meshFiles)
     {
       pvd << "    <DataSet timestep=\"" << m.first << "\" file=\"" << m.second << "\"/>\n";
     }
     pvd << "  </Collection>\n</VTKFile>\n";
+    dmrtools::WriteTextFile(staging.Path("mesh.pvd"), pvd.str());
   }
 #endif
   auto statisticsJson = [](const dmrtools::ErrorStatistics & e) {
@@ -1123,20 +1125,27 @@ Run(const Options & opt)
        << "\n"
        << "}\n";
   const std::string reportName = "report.json";
-  {
-    std::ofstream out(staging.Path(reportName));
-    out << json.str();
-  }
+  dmrtools::WriteTextFile(staging.Path(reportName), json.str());
   if (!opt.report.empty())
   {
-    // written before the outputs are committed, so a failure here leaves nothing behind in the output directory; a
-    // report inside the output directory is staged and committed with the outputs
-    std::ofstream out(ReportInOutputDirectory(opt) ? staging.Path(itksys::SystemTools::GetFilenameName(opt.report))
-                                                   : opt.report);
-    out << json.str();
-    if (!out)
+    // A report inside the output directory is staged and committed with the outputs. One elsewhere is written before
+    // the outputs are committed, so a failure here leaves nothing behind in the output directory, and through a
+    // temporary file, so that it never holds a part of the report (it was written in place: a full disk left it cut
+    // or empty, over an earlier report).
+    try
     {
-      throw std::runtime_error("could not write the report " + opt.report);
+      if (ReportInOutputDirectory(opt))
+      {
+        dmrtools::WriteTextFile(staging.Path(itksys::SystemTools::GetFilenameName(opt.report)), json.str());
+      }
+      else
+      {
+        dmrtools::ReplaceTextFile(opt.report, json.str());
+      }
+    }
+    catch (const std::runtime_error & e)
+    {
+      throw std::runtime_error("could not write the report " + opt.report + ": " + e.what());
     }
   }
   staging.Commit();

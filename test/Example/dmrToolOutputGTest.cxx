@@ -23,11 +23,16 @@
 #include "itkImageFileReader.h"
 #include "itkImageRegionIteratorWithIndex.h"
 #include "itkVector.h"
+#include "itksys/Directory.hxx"
 #include "gtest/gtest.h"
+#include <csignal>
 #include <cstring>
 #include <fstream>
 #include <iterator>
 #include <random>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 namespace
 {
@@ -163,5 +168,79 @@ TEST(ToolOutput, GzipOfAnUnreadableFileThrowsAndWritesNothing)
   const std::string dir = TemporaryDirectory();
   EXPECT_THROW(dmrtools::GzipFileParallel(dir + "/missing.nii", dir + "/out.nii.gz"), std::runtime_error);
   EXPECT_FALSE(itksys::SystemTools::FileExists(dir + "/out.nii.gz"));
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+namespace
+{
+/** Runs body in a child process whose files may not grow beyond limit bytes (RLIMIT_FSIZE, with SIGXFSZ ignored, so a
+ * write past it is cut short with EFBIG, as on a full disk). The child's exit code: 0 when body threw
+ * std::runtime_error, 1 when it returned, 2 on another exception. */
+template <typename TBody>
+int
+ExitCodeWithFileSizeLimit(rlim_t limit, TBody && body)
+{
+  const pid_t child = ::fork();
+  if (child == 0)
+  {
+    std::signal(SIGXFSZ, SIG_IGN);
+    const rlimit cap{ limit, limit };
+    ::setrlimit(RLIMIT_FSIZE, &cap);
+    int code = 1;
+    try
+    {
+      body();
+    }
+    catch (const std::runtime_error &)
+    {
+      code = 0;
+    }
+    catch (...)
+    {
+      code = 2;
+    }
+    std::_Exit(code);
+  }
+  int status = 0;
+  ::waitpid(child, &status, 0);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 100 + (WIFSIGNALED(status) ? WTERMSIG(status) : 0);
+}
+} // namespace
+
+TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
+{
+  // ITK's NIfTI writer and an unchecked std::ofstream do not notice a short write: a 1 MiB image cut at 64 KiB was
+  // compressed (zeros: a few hundred bytes) into a .nii.gz that looked whole, and a cut energy.csv or report.json was
+  // committed as a result
+  const std::string dir = TemporaryDirectory();
+  using ImageType = itk::Image<float, 2>;
+  auto image = ImageType::New();
+  image->SetRegions(ImageType::SizeType{ { 512, 512 } });
+  image->Allocate();
+  image->FillBuffer(0.0f);
+  const rlim_t limit = 64 << 10;
+  EXPECT_EQ(ExitCodeWithFileSizeLimit(limit, [&] { dmrtools::WriteImage(image.GetPointer(), dir + "/cut.nii.gz"); }), 0)
+    << "a NIfTI file cut short was not an error";
+  const std::string text(256 << 10, 'x');
+  EXPECT_EQ(ExitCodeWithFileSizeLimit(limit, [&] { dmrtools::WriteTextFile(dir + "/cut.csv", text); }), 0)
+    << "a text file cut short was not an error";
+  // ReplaceTextFile leaves the file it replaces as it was, and no temporary file
+  dmrtools::WriteTextFile(dir + "/report.json", "{\"earlier\": 1}\n");
+  EXPECT_EQ(ExitCodeWithFileSizeLimit(limit, [&] { dmrtools::ReplaceTextFile(dir + "/report.json", text); }), 0);
+  EXPECT_EQ(ReadBytes(dir + "/report.json").size(), std::string("{\"earlier\": 1}\n").size());
+  itksys::Directory listing;
+  listing.Load(dir);
+  for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+  {
+    EXPECT_EQ(std::string(listing.GetFile(i)).find("dmr-partial"), std::string::npos) << listing.GetFile(i);
+  }
+  // within the limit, all three are written whole
+  EXPECT_EQ(ExitCodeWithFileSizeLimit(limit,
+                                      [&] {
+                                        dmrtools::ReplaceTextFile(dir + "/report.json", "{\"later\": 2}\n");
+                                        dmrtools::WriteTextFile(dir + "/small.csv", "a,b\n");
+                                      }),
+            1);
+  EXPECT_EQ(ReadBytes(dir + "/report.json").size(), std::string("{\"later\": 2}\n").size());
   itksys::SystemTools::RemoveADirectory(dir);
 }
