@@ -992,6 +992,12 @@ Run(const Options & opt)
   {
     saveMesh(history.back().iteration); // stopped early: keep the last mesh
   }
+  if (history.size() < static_cast<size_t>(opt.iterations))
+  {
+    // the run ended before its iterations (the summary line says how many): say why
+    std::cout << "note: the registration stopped after " << history.size() << " of " << opt.iterations
+              << " iterations: " << method->GetStopConditionDescription() << "\n";
+  }
 
   // outputs
   auto field = method->GetDisplacementField();
@@ -1079,6 +1085,7 @@ Run(const Options & opt)
        << "  \"nodes\": " << nodes << ",\n"
        << "  \"final_mesh_nodes\": " << (history.empty() ? 0 : history.back().nodes) << ",\n"
        << "  \"iterations\": " << history.size() << ",\n"
+       << "  \"stop_condition\": \"" << JsonEscape(method->GetStopConditionDescription()) << "\",\n"
        << "  \"iterations_requested\": " << opt.iterations << ",\n"
        << "  \"levels\": " << opt.levels << ",\n"
        << "  \"mesh_mode\": \"" << meshMode << "\",\n"

@@ -146,6 +146,8 @@ check_run_outputs() {
   check "report: dimension is $dimension" test "$(json_number "$report" dimension)" = "$dimension"
   check "report: nodes is $nodes" test "$(json_number "$report" nodes)" = "$nodes"
   check "report: iterations is $iterations" test "$(json_number "$report" iterations)" = "$iterations"
+  check "report: stop_condition says the run completed its iterations" \
+    test "$(json_string "$report" stop_condition)" = "completed the $iterations iterations"
   check "report: mesh_mode is $mode" test "$(json_string "$report" mesh_mode)" = "$mode"
   local backend
   backend=$(json_string "$report" backend)

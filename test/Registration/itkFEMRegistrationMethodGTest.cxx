@@ -448,6 +448,7 @@ TEST(FEMRegistrationMethod, EventsAndAbort)
   EXPECT_EQ(iterations, 4u);
   EXPECT_EQ(method->GetHistory().size(), 4u);
   EXPECT_TRUE(monotone);
+  EXPECT_EQ(method->GetStopConditionDescription(), "aborted (AbortGenerateData) before iteration 5");
 }
 
 TEST(FEMRegistrationMethod, BadInputThrows)
@@ -624,6 +625,8 @@ TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)
   method->SetNumberOfIterations(5);
   method->Update();
   EXPECT_LE(method->GetHistory().size(), 1u);
+  EXPECT_NE(method->GetStopConditionDescription().find("the images already match"), std::string::npos)
+    << method->GetStopConditionDescription();
   const auto * u = method->GetDisplacementField()->GetBufferPointer();
   double       maxU = 0.0;
   for (size_t p = 0; p < 40 * 40; ++p)
@@ -631,6 +634,44 @@ TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)
     maxU = std::max({ maxU, std::abs(double(u[p][0])), std::abs(double(u[p][1])) });
   }
   EXPECT_LT(maxU, 1e-3);
+}
+
+TEST(FEMRegistrationMethod, ALaterDynamicMeshWithoutAFreeNodeEndsTheRunWithTheTransformationReached)
+{
+  // On a strip 4 pixels high every cell touches the border sooner or later: at iteration 1 there is a free node (the
+  // run starts), a later tessellation has none, and the run ends there with the transformation of the iteration
+  // before (nothing can move on that mesh), saying so.
+  auto strip = [](double cx) {
+    auto image = ImageType::New();
+    image->SetRegions(ImageType::SizeType{ { 400, 4 } });
+    image->Allocate();
+    for (unsigned int y = 0; y < 4; ++y)
+    {
+      for (unsigned int x = 0; x < 400; ++x)
+      {
+        const double r = std::sqrt(std::pow((x - cx) / 100.0, 2) + std::pow((y - 1.5) / 3.0, 2));
+        image->SetPixel({ { x, y } }, static_cast<float>(255.0 / (1.0 + std::exp((r - 1.0) * 20.0))));
+      }
+    }
+    return image;
+  };
+  auto method = MethodType::New();
+  method->SetFixedImage(strip(200));
+  method->SetMovingImage(strip(210));
+  method->SetNumberOfNodes(100);
+  method->SetNumberOfIterations(20);
+  method->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  ASSERT_NO_THROW(method->Update());
+  const auto & history = method->GetHistory();
+  ASSERT_GE(history.size(), 2u);
+  ASSERT_LT(history.size(), 20u) << "the strip's tessellations all had a free node: the case no longer tests this";
+  const std::string why = method->GetStopConditionDescription();
+  EXPECT_NE(why.find("the dynamic mesh of iteration " + std::to_string(history.size()) + " has no free node"),
+            std::string::npos)
+    << why;
+  EXPECT_EQ(history.back().stepScale, 0.0);              // no step on the last mesh
+  EXPECT_LT(method->GetFinalSSD(), history.front().ssd); // the iterations before it registered
+  EXPECT_EQ(method->GetFinalSSD(), history.back().ssd);  // and the last one kept their transformation
 }
 
 TEST(FEMRegistrationMethod, BackendWithoutDevice)

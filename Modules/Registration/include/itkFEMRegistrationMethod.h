@@ -30,6 +30,7 @@
 #include "dmrFieldOps.h"
 #include "dmrRegistrationBackend.h"
 #include <chrono>
+#include <string>
 
 namespace itk
 {
@@ -228,6 +229,14 @@ public:
   {
     return m_Timing;
   }
+  /** Why the last run ended (as ITK's optimizers say it): it completed its iterations, was aborted, the images
+   * already matched (no force at iteration 1), or a later dynamic mesh had no free node (the transformation reached
+   * until then is the result). */
+  std::string
+  GetStopConditionDescription() const
+  {
+    return m_StopConditionDescription;
+  }
   /** Final (after the last update) full-resolution SSD and MSSD, x pixel volume. */
   itkGetConstMacro(FinalSSD, double);
   itkGetConstMacro(FinalMSSD, double);
@@ -355,6 +364,7 @@ private:
   double                       m_FinalSSD{ 0.0 };
   double                       m_FinalMSSD{ 0.0 };
   std::vector<IterationRecord> m_History;
+  std::string                  m_StopConditionDescription;
   Timing                       m_Timing;
 
   typename DensityFilterType::Pointer  m_DensityFilter;

@@ -28,6 +28,8 @@
 #include "dmrImageMetrics.h"
 #include <chrono>
 #include <future>
+#include <sstream>
+#include <string>
 #include <type_traits>
 
 namespace itk
@@ -292,6 +294,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   {
     if (this->GetAbortGenerateData())
     {
+      m_StopConditionDescription = "aborted (AbortGenerateData) before iteration " + std::to_string(it);
       break;
     }
     m_CurrentIteration = it;
@@ -420,6 +423,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     m_DensityFilter->Update();
     m_Timing.force += seconds(t0, Clock::now());
   }
+  if (m_StopConditionDescription.empty())
+  {
+    m_StopConditionDescription = "completed the " + std::to_string(m_NumberOfIterations) + " iterations";
+  }
   m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
   m_FinalSSD = m_DensityFilter->GetSSD() * dV * m_EnergyToImageUnits;
   m_FinalMSSD = m_DensityFilter->GetMSSD() * dV * m_EnergyToImageUnits;
@@ -471,6 +478,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
 
   m_History.clear();
   m_Timing = Timing();
+  m_StopConditionDescription.clear();
   m_Beta = 0.0;
   m_EnergyToImageUnits = 1.0;
   m_CurrentMesh = nullptr;
@@ -511,6 +519,12 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
                         << " cells of the tessellation touch the border of the image, where the displacement is "
                            "fixed, so nothing can move; use more nodes");
     }
+    std::ostringstream why;
+    why << "the dynamic mesh of iteration " << m_CurrentIteration << " has no free node (all " << mesh.NumberOfNodes()
+        << " cells touch the border of the image, where the displacement is fixed): the transformation of "
+           "iteration "
+        << m_CurrentIteration - 1 << " is the result";
+    m_StopConditionDescription = why.str();
     return false;
   }
   const auto t0 = std::chrono::steady_clock::now();
@@ -525,6 +539,8 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
     }
     if (!(fKf > 0.0) || !(mssd > 0.0))
     {
+      m_StopConditionDescription = "the images already match: there is no force to register with (the identity is "
+                                   "the result)";
       return false;
     }
     m_Beta = fKf / (2.0 * m_EnergyRatio * mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
@@ -871,6 +887,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   {
     if (this->GetAbortGenerateData())
     {
+      m_StopConditionDescription = "aborted (AbortGenerateData) before iteration " + std::to_string(it);
       break;
     }
     m_CurrentIteration = it;
@@ -1050,6 +1067,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.ComputeForce(statistics, warpedGradient), "final force");
     m_Timing.force += seconds(t0, Clock::now());
   }
+  if (m_StopConditionDescription.empty())
+  {
+    m_StopConditionDescription = "completed the " + std::to_string(m_NumberOfIterations) + " iterations";
+  }
   m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
   m_FinalSSD = statistics.ssd * dV * m_EnergyToImageUnits;
   m_FinalMSSD = statistics.mssd * dV * m_EnergyToImageUnits;
@@ -1124,6 +1145,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;
   os << indent << "FinalMSSD: " << m_FinalMSSD << std::endl;
   os << indent << "History: " << m_History.size() << " iterations" << std::endl;
+  os << indent << "StopConditionDescription: " << m_StopConditionDescription << std::endl;
   itkPrintSelfObjectMacro(DensityFilter);
   itkPrintSelfObjectMacro(CVTFilter);
   itkPrintSelfObjectMacro(DualMeshFilter);
