@@ -17,34 +17,70 @@
  *=========================================================================*/
 // dmrImageDice A B [threshold]: Dice overlap of {A > t} and {B > t} (t = 0.5 by default), e.g. of a warped
 // binary/label image and its target.
+#include "dmrErrorStatistics.h"
 #include "dmrImageMetrics.h"
-#include "itkImageFileReader.h"
+#include "dmrReadImage.h"
+#include "dmrToolErrors.h"
+#include <cerrno>
+#include <cmath>
+#include <cstdlib>
 #include <iostream>
+#include <string>
 
 int
 main(int argc, char * argv[])
 {
-  if (argc < 3 || argc > 4)
-  {
-    std::cerr << "usage: dmrImageDice A B [threshold]\n";
-    return 2;
-  }
-  try
-  {
-    using ImageType = itk::Image<float, 3>; // 2D files read as one slice
-    auto a = itk::ImageFileReader<ImageType>::New();
-    a->SetFileName(argv[1]);
-    a->Update();
-    auto b = itk::ImageFileReader<ImageType>::New();
-    b->SetFileName(argv[2]);
-    b->Update();
-    const double t = argc == 4 ? std::atof(argv[3]) : 0.5;
-    std::cout << itk::dmr::DiceCoefficient(a->GetOutput(), b->GetOutput(), t) << '\n';
-  }
-  catch (const itk::ExceptionObject & e)
-  {
-    std::cerr << "dmrImageDice: error: " << e.GetDescription() << '\n';
-    return 1;
-  }
-  return 0;
+  return dmrtools::RunReportingErrors("dmrImageDice", [&]() {
+    const std::string usage = "usage: dmrImageDice A B [threshold]";
+    if (argc == 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h"))
+    {
+      std::cout << usage
+                << "\n  Dice overlap of {A > threshold} and {B > threshold} (default 0.5); A and B must lie "
+                   "on one grid (2D or 3D images, or DICOM series directories)\n";
+      return 0;
+    }
+    if (argc < 3 || argc > 4)
+    {
+      throw dmrtools::UsageError(usage);
+    }
+    double threshold = 0.5;
+    if (argc == 4)
+    {
+      // the whole argument, a finite number: atof took 'nan' (every comparison false: Dice 1 of two empty sets)
+      char * end = nullptr;
+      errno = 0;
+      threshold = std::strtod(argv[3], &end);
+      if (end == argv[3] || *end != '\0' || errno == ERANGE || !std::isfinite(threshold))
+      {
+        throw dmrtools::UsageError("the threshold must be a finite number, got '" + std::string(argv[3]) + "'");
+      }
+    }
+    using ImageType = itk::Image<float, 3>; // 2D files are read as one slice
+    auto read = [](const std::string & path) {
+      unsigned int components = 1;
+      if (dmrtools::ImageDimensionOf(path, &components) > 3 || components != 1)
+      {
+        throw dmrtools::UsageError("not a scalar 2D or 3D image: " + path);
+      }
+      try
+      {
+        return dmrtools::ReadImageOrDicomSeries<ImageType>(path);
+      }
+      catch (const itk::ExceptionObject & e)
+      {
+        throw dmrtools::UsageError("cannot read " + path + ": " + e.GetDescription());
+      }
+    };
+    const auto a = read(argv[1]);
+    const auto b = read(argv[2]);
+    // voxel by voxel: the grids must be one (a same-sized image elsewhere in space gave a Dice without a word)
+    if (!dmrtools::SameGrid<3>(a.GetPointer(), b.GetPointer()))
+    {
+      throw dmrtools::UsageError(
+        std::string("the images lie on different grids (size, spacing, origin or direction): ") + argv[1] + ", " +
+        argv[2]);
+    }
+    std::cout << itk::dmr::DiceCoefficient(a.GetPointer(), b.GetPointer(), threshold) << '\n';
+    return 0;
+  });
 }

@@ -237,6 +237,17 @@ generate)
   echo "Dice(fixed, fixed) = $d_self, Dice(fixed, moving) = $d_pair"
   check "dmrImageDice: Dice of an image with itself is 1" awk_true "$d_self == 1"
   check "dmrImageDice: circle vs epsilon overlap in (0, 1)" awk_true "$d_pair > 0 && $d_pair < 1"
+  # bad input to dmrImageDice: one line, exit 2 (a NaN threshold gave 1, images on different grids a Dice, a missing
+  # file three lines)
+  "$CHECK" make-2d "$W/other-grid.nii.gz"
+  for args in "$DATA/fixed.nii.gz $DATA/moving.nii.gz nan" "$DATA/fixed.nii.gz $DATA/moving.nii.gz 0.5x" \
+              "$DATA/fixed.nii.gz $W/other-grid.nii.gz" "$DATA/fixed.nii.gz $W/missing.nii.gz" "$DATA/fixed.nii.gz"; do
+    # shellcheck disable=SC2086
+    "$DICE" $args >"$W/stdout" 2>"$W/stderr"
+    rc=$?
+    check "dmrImageDice $(basename "${args##* }"): exit 2 ($rc), one line on stderr ($(cat "$W/stderr"))" \
+      bash -c "test $rc = 2 && test \$(wc -l <'$W/stderr') = 1 && grep -q '^dmrImageDice: error: ' '$W/stderr'"
+  done
   ;;
 run-dynamic)
   out="$W/out"
