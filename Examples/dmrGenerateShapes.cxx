@@ -20,52 +20,61 @@
 // comparison (CGAL Delaunay refinement of the target's contour, about --fidelity-nodes nodes).
 #include "dmrSyntheticShapes.h"
 #include "dmrFidelityMesh.h"
-#include "itkImageFileWriter.h"
 #include "dmrMeshFileIO.h"
-#include "itksys/SystemTools.hxx"
+#include "dmrToolErrors.h"
+#include "dmrToolOutput.h"
+#include <cerrno>
+#include <cstdlib>
 #include <iostream>
 
 int
 main(int argc, char * argv[])
 {
-  std::string shape, outputDir;
-  long        fidelityNodes = 100;
-  for (int i = 1; i < argc; ++i)
-  {
-    const std::string a = argv[i];
-    if (a == "--help" || a == "-h")
+  return dmrtools::RunReportingErrors("dmrGenerateShapes", [&]() {
+    using dmrtools::UsageError;
+    std::string shape, outputDir;
+    long        fidelityNodes = 100;
+    for (int i = 1; i < argc; ++i)
     {
-      std::cout << "usage: dmrGenerateShapes --case epsilon|leaf --output-dir D [--fidelity-nodes N]\n"
-                   "  writes D/fixed.nii.gz (target), D/moving.nii.gz (source) and, for epsilon, D/fidelity_mesh.vtk\n";
-      return EXIT_SUCCESS;
+      const std::string a = argv[i];
+      if (a == "--help" || a == "-h")
+      {
+        std::cout << "usage: dmrGenerateShapes --case epsilon|leaf --output-dir D [--fidelity-nodes N]\n"
+                     "  writes D/fixed.nii.gz (target), D/moving.nii.gz (source) and, for epsilon, "
+                     "D/fidelity_mesh.vtk (about N nodes, 8 <= N <= 100000, default 100); files appear only when all "
+                     "of them were written\n";
+        return EXIT_SUCCESS;
+      }
+      if (i + 1 >= argc)
+      {
+        throw UsageError("missing value for " + a);
+      }
+      const std::string v = argv[++i];
+      if (a == "--case")
+        shape = v;
+      else if (a == "--output-dir")
+        outputDir = v;
+      else if (a == "--fidelity-nodes")
+      {
+        char * end = nullptr;
+        errno = 0;
+        fidelityNodes = std::strtol(v.c_str(), &end, 10);
+        if (end == v.c_str() || *end != '\0' || errno == ERANGE || fidelityNodes < 8 || fidelityNodes > 100000)
+        {
+          throw UsageError("--fidelity-nodes needs an integer in [8, 100000], got '" + v + "'");
+        }
+      }
+      else
+      {
+        throw UsageError("unknown option " + a);
+      }
     }
-    if (i + 1 >= argc)
+    if ((shape != "epsilon" && shape != "leaf") || outputDir.empty())
     {
-      std::cerr << "dmrGenerateShapes: error: missing value for " << a << '\n';
-      return 2;
+      throw UsageError("need --case epsilon|leaf and --output-dir D (see --help)");
     }
-    const std::string v = argv[++i];
-    if (a == "--case")
-      shape = v;
-    else if (a == "--output-dir")
-      outputDir = v;
-    else if (a == "--fidelity-nodes")
-      fidelityNodes = std::atol(v.c_str());
-    else
-    {
-      std::cerr << "dmrGenerateShapes: error: unknown option " << a << '\n';
-      return 2;
-    }
-  }
-  if ((shape != "epsilon" && shape != "leaf") || outputDir.empty() || fidelityNodes < 8)
-  {
-    std::cerr << "dmrGenerateShapes: error: need --case epsilon|leaf and --output-dir D (see --help)\n";
-    return 2;
-  }
-  try
-  {
     using namespace itk::dmr;
-    itksys::SystemTools::MakeDirectory(outputDir);
+    dmrtools::Staging       staging(outputDir); // a file named like the directory is a usage error
     ShapeImageType::Pointer fixed, moving;
     if (shape == "epsilon")
     {
@@ -77,29 +86,26 @@ main(int argc, char * argv[])
       fixed = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Target);
       moving = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Source);
     }
-    auto writer = itk::ImageFileWriter<ShapeImageType>::New();
-    writer->UseCompressionOn();
-    writer->SetInput(fixed);
-    writer->SetFileName(outputDir + "/fixed.nii.gz");
-    writer->Update();
-    writer->SetInput(moving);
-    writer->SetFileName(outputDir + "/moving.nii.gz");
-    writer->Update();
-    std::cout << "wrote " << outputDir << "/fixed.nii.gz (target) and " << outputDir << "/moving.nii.gz (source)\n";
+    // checked writes (ITK's NIfTI writer only prints when it cannot open or fill a file), committed together
+    dmrtools::WriteImage(fixed.GetPointer(), staging.Path("fixed.nii.gz"));
+    dmrtools::WriteImage(moving.GetPointer(), staging.Path("moving.nii.gz"));
+    size_t nodes = 0, triangles = 0;
     if (shape == "epsilon")
     {
       const auto mesh = MakeFidelityMesh(fixed.GetPointer(), 0.5, static_cast<size_t>(fidelityNodes));
       using MeshType = itk::Mesh<double, 2>;
       auto itkMesh = ToItkMesh<2, MeshType>(mesh, fixed.GetPointer());
-      dmrtools::WriteMeshFile(itkMesh.GetPointer(), outputDir + "/fidelity_mesh.vtk");
-      std::cout << "wrote " << outputDir << "/fidelity_mesh.vtk (" << mesh.NumberOfNodes() << " nodes, "
-                << mesh.elements.size() << " triangles)\n";
+      dmrtools::WriteMeshFile(itkMesh.GetPointer(), staging.Path("fidelity_mesh.vtk"));
+      nodes = mesh.NumberOfNodes();
+      triangles = mesh.elements.size();
     }
-  }
-  catch (const std::exception & e)
-  {
-    std::cerr << "dmrGenerateShapes: error: " << e.what() << '\n';
-    return 1;
-  }
-  return EXIT_SUCCESS;
+    staging.Commit();
+    std::cout << "wrote " << outputDir << "/fixed.nii.gz (target) and " << outputDir << "/moving.nii.gz (source)\n";
+    if (shape == "epsilon")
+    {
+      std::cout << "wrote " << outputDir << "/fidelity_mesh.vtk (" << nodes << " nodes, " << triangles
+                << " triangles)\n";
+    }
+    return EXIT_SUCCESS;
+  });
 }

@@ -237,6 +237,13 @@ generate)
   echo "Dice(fixed, fixed) = $d_self, Dice(fixed, moving) = $d_pair"
   check "dmrImageDice: Dice of an image with itself is 1" awk_true "$d_self == 1"
   check "dmrImageDice: circle vs epsilon overlap in (0, 1)" awk_true "$d_pair > 0 && $d_pair < 1"
+  # dmrGenerateShapes into a path that is a file: ITK's NIfTI writer only printed that it could not open the files,
+  # and the tool said it wrote them
+  echo "a file" >"$W/not-a-directory"
+  "$GEN" --case epsilon --output-dir "$W/not-a-directory" >"$W/stdout" 2>"$W/stderr"
+  rc=$?
+  check "dmrGenerateShapes into a file: exit 2 ($rc), one line on stderr ($(cat "$W/stderr")), nothing on stdout" \
+    bash -c "test $rc = 2 && test \$(wc -l <'$W/stderr') = 1 && test ! -s '$W/stdout'"
   # bad input to dmrImageDice: one line, exit 2 (a NaN threshold gave 1, images on different grids a Dice, a missing
   # file three lines)
   "$CHECK" make-2d "$W/other-grid.nii.gz"
