@@ -62,6 +62,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <future>
+#include <tuple>
 #include <iomanip>
 #include <iostream>
 #include <limits>
@@ -685,8 +686,11 @@ Run(const Options & opt)
     }
   }
   typename ImageType::Pointer movingInput = moving; // as read: warped.nii.gz samples it (original intensities)
+  std::pair<double, double>   fixedRangeAsRead, movingRangeAsRead; // for the message when a window leaves nothing
   if (opt.window)
   {
+    fixedRangeAsRead = itk::dmr::IntensityRange(fixed.GetPointer());
+    movingRangeAsRead = itk::dmr::IntensityRange(moving.GetPointer());
     // CT: clamp to the window and scale to [0, 1] so that the SSD (and beta) are well scaled for HU; the moving
     // image is windowed in a copy so that the warped output keeps the input's intensities
     auto copy = ImageType::New();
@@ -787,14 +791,26 @@ Run(const Options & opt)
     throw UsageError("--nodes must be between 4 and the number of pixels (" + std::to_string(pixels) + "), got " +
                      std::to_string(nodes));
   }
-  for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
-                              std::make_pair(std::string("moving"), moving.GetPointer()) })
+  for (const auto & named : { std::make_tuple(std::string("fixed"), fixed.GetPointer(), fixedRangeAsRead),
+                              std::make_tuple(std::string("moving"), moving.GetPointer(), movingRangeAsRead) })
   {
-    const auto range = itk::dmr::IntensityRange(named.second);
+    const auto range = itk::dmr::IntensityRange(std::get<1>(named));
     if (!(range.second > range.first))
     {
-      throw UsageError("the " + named.first + " image has constant intensity " + std::to_string(range.first) +
-                       ": nothing to register (the density would be zero)");
+      std::ostringstream message;
+      if (opt.window)
+      {
+        // the window, not the image, is what is constant: say so (it read "constant intensity 0.000000")
+        message << "the " << std::get<0>(named) << " image is constant inside --intensity-window " << opt.windowLow
+                << "," << opt.windowHigh << " (its intensities lie in [" << std::get<2>(named).first << ", "
+                << std::get<2>(named).second << "]): nothing to register; choose a window that overlaps them";
+      }
+      else
+      {
+        message << "the " << std::get<0>(named) << " image has constant intensity " << range.first
+                << ": nothing to register (the density would be zero)";
+      }
+      throw UsageError(message.str());
     }
   }
 

@@ -429,6 +429,10 @@ bad-3d-options)
   expect_bad_input window-reversed "${F3[@]}" --intensity-window 5,1
   expect_bad_input window-one-value "${F3[@]}" --intensity-window 5
   expect_bad_input window-constant "${F3[@]}" --intensity-window 2,3
+  run_reg "${F3[@]}" --intensity-window 2,3 --output-dir "$W/out-window-constant"
+  check "the message blames the window, not the image ($(cat "$W/stderr"))" \
+    grep -q "the fixed image is constant inside --intensity-window 2,3 (its intensities lie in \[" "$W/stderr"
+  rm -f "$W/stdout" "$W/stderr" # (expect_bad_input compares the directory's listing)
   printf '6 5 4\n9 7 6\n' >"$W/two.txt"
   printf '6 5 4\n' >"$W/one.txt"
   printf '6 5\n' >"$W/short.txt"
