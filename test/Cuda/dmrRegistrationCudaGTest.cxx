@@ -612,23 +612,11 @@ IntensityUnitDoesNotChangeTheRun(unsigned int nodes, unsigned int iterations, un
     reference->SetDeviceSolverMinimumDegreesOfFreedom(0);
   }
   reference->Update();
-  const size_t pixels = reference->GetFixedImage()->GetLargestPossibleRegion().GetNumberOfPixels();
   for (const int exponent : { 70, -70 })
   {
-    auto scaled = [&](const ImageOf<D> * image) {
-      auto out = ImageOf<D>::New();
-      out->SetRegions(image->GetLargestPossibleRegion());
-      out->CopyInformation(image);
-      out->Allocate();
-      for (size_t p = 0; p < pixels; ++p)
-      {
-        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
-      }
-      return out;
-    };
     auto method = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n);
-    method->SetFixedImage(scaled(reference->GetFixedImage()));
-    method->SetMovingImage(scaled(reference->GetMovingImage()));
+    method->SetFixedImage(itk::dmr::test::ScaledByPowerOfTwo(reference->GetFixedImage(), exponent));
+    method->SetMovingImage(itk::dmr::test::ScaledByPowerOfTwo(reference->GetMovingImage(), exponent));
     if (deviceSolve)
     {
       method->SetDeviceSolverMinimumDegreesOfFreedom(0);

@@ -63,6 +63,18 @@ Blob(const ImageType::PointType & c)
   };
 }
 
+/** 40 x 32 pixels, spacing 1 x 1.5 mm: a blob and the same blob 3 mm to the right and 2 mm down. */
+constexpr ImageType::SizeType BlobPairSize{ { 40, 32 } };
+std::pair<ImageType::Pointer, ImageType::Pointer>
+BlobPair()
+{
+  const auto identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  return {
+    itk::dmr::test::MakeImage<ImageType>(BlobPairSize, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20))),
+    itk::dmr::test::MakeImage<ImageType>(BlobPairSize, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)))
+  };
+}
+
 itk::Vector<double, 2>
 Vec(double x, double y)
 {
@@ -551,12 +563,8 @@ TEST(DensityFieldFilter, ForceIsPerMillimetre)
 
 TEST(DensityFieldFilter, DensityIsSquaredForcePlusAlpha)
 {
-  const ImageType::SizeType size{ { 40, 32 } };
-  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto                      fixed =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  const ImageType::SizeType size = BlobPairSize;
+  const auto [fixed, moving] = BlobPair();
   auto filter = FilterType::New();
   filter->SetFixedImage(fixed);
   filter->SetMovingImage(moving);
@@ -590,20 +598,13 @@ TEST(DensityFieldFilter, DensityIsSquaredForcePlusAlpha)
   }
 }
 
-// Regression test (a fixed bug): BuildPyramids() reuses its cached
-// pyramids when m_PyramidTime >= max(fixed MTime, moving MTime) and the pixel count matches, so a different input
-// image that is older than the cached ones (here: created first) is ignored; SSD is 184760 instead of 0.
 TEST(DensityFieldFilter, IntensitiesBeyondSinglePrecisionAreScaledExactly)
 {
   // |f|^2 grows with the fourth power of the intensities: blobs of height 2^70 (about 1e21) overflowed the float
   // density, blobs of height 2^-70 left only alpha in it. The filter scales such images by a power of two: the
   // density, force, SSD and MSSD are then those of the ordinary images times exact powers of two.
-  const ImageType::SizeType size{ { 40, 32 } };
-  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto                      fixed =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  const ImageType::SizeType size = BlobPairSize;
+  const auto [fixed, moving] = BlobPair();
   auto reference = FilterType::New();
   reference->SetFixedImage(fixed);
   reference->SetMovingImage(moving);
@@ -612,18 +613,9 @@ TEST(DensityFieldFilter, IntensitiesBeyondSinglePrecisionAreScaledExactly)
   const size_t n = size[0] * size[1];
   for (const int exponent : { 70, -70, 10 })
   {
-    auto scaled = [&](const ImageType * image) {
-      auto out = itk::dmr::test::MakeImage<ImageType>(
-        size, Spacing(1, 1.5), Origin(0, 0), identity, [](const ImageType::PointType &) { return 0.0; });
-      for (size_t p = 0; p < n; ++p)
-      {
-        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
-      }
-      return out;
-    };
     auto filter = FilterType::New();
-    filter->SetFixedImage(scaled(fixed));
-    filter->SetMovingImage(scaled(moving));
+    filter->SetFixedImage(itk::dmr::test::ScaledByPowerOfTwo(fixed.GetPointer(), exponent));
+    filter->SetMovingImage(itk::dmr::test::ScaledByPowerOfTwo(moving.GetPointer(), exponent));
     filter->Update();
     // the reference's force scale 2 R^2 / h is about 2^14, the scaled images' 2^(14 + 2 exponent): only beyond 2^40
     // are they scaled
@@ -662,12 +654,8 @@ TEST(DensityFieldFilter, ADownstreamRegionOfInterestGetsTheWholeOutputs)
 {
   // A filter downstream that asks for a part of the density or of the force field (a region of interest, streaming):
   // the density was allocated for that part and written for every pixel, past the end of its buffer.
-  const ImageType::SizeType size{ { 40, 32 } };
-  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto                      fixed =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  const ImageType::SizeType size = BlobPairSize;
+  const auto [fixed, moving] = BlobPair();
   auto whole = FilterType::New();
   whole->SetFixedImage(fixed);
   whole->SetMovingImage(moving);
@@ -711,6 +699,9 @@ TEST(DensityFieldFilter, ADownstreamRegionOfInterestGetsTheWholeOutputs)
   }
 }
 
+// Regression test (a fixed bug): BuildPyramids() reuses its cached
+// pyramids when m_PyramidTime >= max(fixed MTime, moving MTime) and the pixel count matches, so a different input
+// image that is older than the cached ones (here: created first) is ignored; SSD is 184760 instead of 0.
 TEST(DensityFieldFilter, SwappingInAnotherImageOfTheSameSizeIsSeen)
 {
   // the pyramids are cached between updates; a different moving image must not reuse the old ones
@@ -735,12 +726,8 @@ TEST(DensityFieldFilter, SwappingInAnotherImageOfTheSameSizeIsSeen)
 // alpha is 0.1 x the mean |f|^2 over the inside; an empty mask or one on another grid is refused.
 TEST(DensityFieldFilter, FixedMaskRestrictsForceDensityAndSimilarity)
 {
-  const ImageType::SizeType size{ { 40, 32 } };
-  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
-  auto                      fixed =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(18, 20)));
-  auto moving =
-    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1.5), Origin(0, 0), identity, Blob(Origin(21, 18)));
+  const ImageType::SizeType size = BlobPairSize;
+  const auto [fixed, moving] = BlobPair();
   using MaskType = FilterType::MaskImageType;
   auto mask = MaskType::New();
   mask->CopyInformation(fixed);

@@ -388,6 +388,24 @@ ItkMeshConvertsBackTo(const TItkMesh * output, const TImage * image, const Simpl
   }
   return ::testing::AssertionSuccess();
 }
+/** A copy of a scalar image (whole buffer) with every intensity multiplied by 2^exponent: exact, so the method must
+ * give the same field for it (the density filter's intensity scale). */
+template <typename TImage>
+typename TImage::Pointer
+ScaledByPowerOfTwo(const TImage * image, int exponent)
+{
+  auto out = TImage::New();
+  out->CopyInformation(image);
+  out->SetRegions(image->GetLargestPossibleRegion());
+  out->Allocate();
+  const size_t n = image->GetLargestPossibleRegion().GetNumberOfPixels();
+  for (size_t p = 0; p < n; ++p)
+  {
+    out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
+  }
+  return out;
+}
+
 } // namespace test
 } // namespace dmr
 } // namespace itk

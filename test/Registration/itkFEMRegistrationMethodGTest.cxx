@@ -225,20 +225,9 @@ TEST(FEMRegistrationMethod, TheIntensityUnitDoesNotChangeTheRegistration)
   const size_t n = reference->GetFixedImage()->GetLargestPossibleRegion().GetNumberOfPixels();
   for (const int exponent : { 70, -70 })
   {
-    auto scaled = [&](const ImageType * image) {
-      auto out = ImageType::New();
-      out->SetRegions(image->GetLargestPossibleRegion());
-      out->CopyInformation(image);
-      out->Allocate();
-      for (size_t p = 0; p < n; ++p)
-      {
-        out->GetBufferPointer()[p] = std::ldexp(image->GetBufferPointer()[p], exponent);
-      }
-      return out;
-    };
     auto method = SmallRegistration(MeshMode::Dynamic, 20);
-    method->SetFixedImage(scaled(reference->GetFixedImage()));
-    method->SetMovingImage(scaled(reference->GetMovingImage()));
+    method->SetFixedImage(itk::dmr::test::ScaledByPowerOfTwo(reference->GetFixedImage(), exponent));
+    method->SetMovingImage(itk::dmr::test::ScaledByPowerOfTwo(reference->GetMovingImage(), exponent));
     method->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
     ASSERT_NO_THROW(method->Update()) << exponent;
     const auto * a = reference->GetDisplacementField()->GetBufferPointer();
