@@ -28,6 +28,7 @@
 #include "itkImageFileReader.h"
 #include "itkImageSeriesReader.h"
 #include "itkMacro.h"
+#include "itkMath.h"
 #include "itkMetaDataObject.h"
 #include "itkImageIOFactory.h"
 #include "itkBuildInformation.h"
@@ -42,6 +43,8 @@
 #include "dmrImageFileCheck.h"
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
+#include <algorithm>
+#include <cmath>
 #include <future>
 #include <sstream>
 #include <string>
@@ -115,21 +118,21 @@ DicomSeriesFileNames(const std::string & directory)
  * spacing) or a series with two slice spacings is far above it. */
 constexpr double DicomSliceGapTolerance = 0.05;
 
-/** Throws when the slices of a series just read by ITK's series reader are not evenly spaced. The reader builds a
- * volume with the mean gap as its spacing and only warns (a warning the tools do not show), so a missing slice moved
- * every slice after it by up to a whole spacing in physical space, silently. */
+/** Throws when the slices of a series just read by ITK's series reader (from files, ordered by position) do not
+ * make the volume the reader built. The reader gives the volume its first slice's orthogonal axes and the mean gap as
+ * the slice spacing, and only warns about uneven gaps (a warning the tools do not show). So a missing slice moved
+ * every slice after it by up to a whole spacing in physical space, and a sheared series (slices offset within their
+ * own plane from one to the next, as after a gantry tilt) was stacked straight, its last slice put where the first
+ * one's normal leads instead of where it was scanned: both silently. */
 template <typename TImage>
 void
-CheckDicomSliceSpacing(const std::string & directory, const TImage * image)
+CheckDicomSliceGeometry(const std::string & directory, const std::vector<std::string> & files, const TImage * image)
 {
-  double deviation = 0.0;
-  if (!itk::ExposeMetaData<double>(image->GetMetaDataDictionary(), "ITK_non_uniform_sampling_deviation", deviation))
-  {
-    return; // every gap equals the spacing
-  }
   constexpr unsigned int sliceAxis = TImage::ImageDimension - 1;
   const double           spacing = image->GetSpacing()[sliceAxis];
-  if (deviation > DicomSliceGapTolerance * spacing)
+  double                 deviation = 0.0;
+  if (itk::ExposeMetaData<double>(image->GetMetaDataDictionary(), "ITK_non_uniform_sampling_deviation", deviation) &&
+      deviation > DicomSliceGapTolerance * spacing)
   {
     std::ostringstream message;
     message << "the DICOM series in " << directory
@@ -137,6 +140,47 @@ CheckDicomSliceSpacing(const std::string & directory, const TImage * image)
                "mean gap ("
             << spacing << " mm) by " << deviation << " mm; give a complete series, or resample it to an even spacing "
             << "first";
+    throw itk::ExceptionObject(__FILE__, __LINE__, message.str(), ITK_LOCATION);
+  }
+  if (files.size() < 2)
+  {
+    return;
+  }
+  // the last slice's position (Image Position (Patient), which GDCM gives as the origin) against the first one's
+  auto positionOf = [](const std::string & file) {
+    auto reader = itk::ImageFileReader<TImage>::New();
+    reader->SetImageIO(itk::GDCMImageIO::New());
+    reader->SetFileName(file);
+    reader->UpdateOutputInformation();
+    return reader->GetOutput()->GetOrigin();
+  };
+  const auto   stack = positionOf(files.back()) - positionOf(files.front());
+  const auto & direction = image->GetDirection();
+  double       along = 0.0;
+  for (unsigned int r = 0; r < TImage::ImageDimension; ++r)
+  {
+    along += stack[r] * direction[r][sliceAxis];
+  }
+  double across = 0.0; // the stack's offset within the slice plane
+  for (unsigned int r = 0; r < TImage::ImageDimension; ++r)
+  {
+    const double c = stack[r] - along * direction[r][sliceAxis];
+    across += c * c;
+  }
+  across = std::sqrt(across);
+  double inPlane = image->GetSpacing()[0];
+  for (unsigned int k = 1; k < sliceAxis; ++k)
+  {
+    inPlane = std::min(inPlane, static_cast<double>(image->GetSpacing()[k]));
+  }
+  if (across > 0.5 * inPlane)
+  {
+    std::ostringstream message;
+    message << "the DICOM series in " << directory << " is sheared: from the first slice to the last the slices move "
+            << across << " mm within their own plane besides " << std::abs(along)
+            << " mm along its normal (a gantry tilt of " << std::atan2(across, std::abs(along)) * 180.0 / itk::Math::pi
+            << " degrees?), which a volume with orthogonal axes cannot hold; resample the series onto an orthogonal "
+               "grid first";
     throw itk::ExceptionObject(__FILE__, __LINE__, message.str(), ITK_LOCATION);
   }
 }
@@ -177,9 +221,10 @@ ReadImageOrDicomSeries(const std::string & path)
   {
     auto reader = itk::ImageSeriesReader<TImage>::New();
     reader->SetImageIO(itk::GDCMImageIO::New());
-    reader->SetFileNames(DicomSeriesFileNames(path));
+    const auto files = DicomSeriesFileNames(path);
+    reader->SetFileNames(files);
     reader->Update();
-    CheckDicomSliceSpacing(path, reader->GetOutput());
+    CheckDicomSliceGeometry(path, files, reader->GetOutput());
     return reader->GetOutput();
   }
   std::future<bool> complete;

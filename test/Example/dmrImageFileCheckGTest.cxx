@@ -27,7 +27,12 @@
 #include "itkImageFileWriter.h"
 #include "itkImageIOFactory.h"
 #include "itksys/SystemTools.hxx"
+#include "itkGDCMImageIO.h"
+#include "itkMetaDataObject.h"
 #include "gtest/gtest.h"
+#include <array>
+#include <sstream>
+#include <vector>
 #include <fstream>
 #include <string>
 
@@ -172,4 +177,94 @@ TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
   WriteBytes(path, whole.substr(0, whole.size() - 100));
   EXPECT_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path), itk::ExceptionObject);
   EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+}
+
+namespace
+{
+/** Writes a small CT-like DICOM series (16 x 12 slices of 1 x 1 mm, axial orientation, one Series Instance UID) into
+ * dir, one file per entry of positions (Image Position (Patient), mm), named in reverse order so that only the
+ * positions order them. */
+void
+WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3>> & positions)
+{
+  using SliceType = itk::Image<short, 2>;
+  itksys::SystemTools::MakeDirectory(dir);
+  for (size_t k = 0; k < positions.size(); ++k)
+  {
+    auto slice = SliceType::New();
+    slice->SetRegions(SliceType::SizeType{ { 16, 12 } });
+    slice->Allocate();
+    for (unsigned int y = 0; y < 12; ++y)
+    {
+      for (unsigned int x = 0; x < 16; ++x)
+      {
+        slice->SetPixel({ { x, y } }, static_cast<short>((x * 37 + y * 11 + k * 5) % 300 - 100));
+      }
+    }
+    auto & dictionary = slice->GetMetaDataDictionary();
+    auto   set = [&dictionary](const std::string & tag, const std::string & value) {
+      itk::EncapsulateMetaData<std::string>(dictionary, tag, value);
+    };
+    std::ostringstream position;
+    position << positions[k][0] << "\\" << positions[k][1] << "\\" << positions[k][2];
+    set("0008|0016", "1.2.840.10008.5.1.4.1.1.2"); // CT Image Storage
+    set("0008|0018", "1.2.826.0.1.3680043.2.1143.777.2." + std::to_string(k + 1));
+    set("0008|0060", "CT");
+    set("0020|000d", "1.2.826.0.1.3680043.2.1143.777.1");
+    set("0020|000e", "1.2.826.0.1.3680043.2.1143.777.1.1");
+    set("0020|0013", std::to_string(k + 1));
+    set("0020|0032", position.str());
+    set("0020|0037", "1\\0\\0\\0\\1\\0");
+    set("0028|0030", "1\\1");
+    set("0018|0050", "1");
+    auto io = itk::GDCMImageIO::New();
+    io->KeepOriginalUIDOn();
+    auto writer = itk::ImageFileWriter<SliceType>::New();
+    writer->SetImageIO(io);
+    writer->SetInput(slice);
+    writer->SetFileName(dir + "/slice" + std::to_string(positions.size() - k) + ".dcm");
+    writer->Update();
+  }
+}
+} // namespace
+
+TEST(ImageFileCheck, DicomSeriesMustStackItsSlicesEvenlyAlongTheirNormal)
+{
+  // ITK's series reader builds a volume with the first slice's orthogonal axes and the mean gap as spacing, and only
+  // warns about uneven gaps: a missing slice and a sheared series (gantry tilt) were read into the wrong place
+  using CTType = itk::Image<float, 3>;
+  const std::string                  dir = WorkDir();
+  std::vector<std::array<double, 3>> even, missing, sheared;
+  for (int k = 0; k < 10; ++k)
+  {
+    even.push_back({ -8.0, -6.0, 2.5 * k - 20.0 });
+    if (k != 6)
+    {
+      missing.push_back(even.back());
+    }
+    sheared.push_back({ -8.0, -6.0 + 0.4 * k, 2.5 * k - 20.0 }); // 3.6 mm across 22.5 mm: a 9 degree tilt
+  }
+  WriteDicomSeries(dir + "/even", even);
+  WriteDicomSeries(dir + "/missing", missing);
+  WriteDicomSeries(dir + "/sheared", sheared);
+  const auto volume = dmrtools::ReadImageOrDicomSeries<CTType>(dir + "/even");
+  EXPECT_EQ(volume->GetLargestPossibleRegion().GetSize(), (itk::Size<3>{ { 16, 12, 10 } }));
+  EXPECT_NEAR(volume->GetSpacing()[2], 2.5, 1e-6);
+  EXPECT_NEAR(volume->GetOrigin()[2], -20.0, 1e-6); // ordered by position, not by file name
+  EXPECT_EQ(volume->GetPixel({ { 3, 2, 9 } }), static_cast<float>((3 * 37 + 2 * 11 + 9 * 5) % 300 - 100));
+  auto message = [](const std::string & path) -> std::string {
+    try
+    {
+      dmrtools::ReadImageOrDicomSeries<CTType>(path);
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      return e.GetDescription();
+    }
+    return "read without an error";
+  };
+  EXPECT_NE(message(dir + "/missing").find("has a missing slice or uneven slice positions"), std::string::npos)
+    << message(dir + "/missing");
+  EXPECT_NE(message(dir + "/sheared").find("is sheared"), std::string::npos) << message(dir + "/sheared");
+  itksys::SystemTools::RemoveADirectory(dir);
 }
