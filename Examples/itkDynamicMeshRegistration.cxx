@@ -1014,6 +1014,25 @@ Run(const Options & opt)
     std::cout << "note: the registration stopped after " << history.size() << " of " << opt.iterations
               << " iterations: " << method->GetStopConditionDescription() << "\n";
   }
+  else
+  {
+    // every iteration ran, but did anything move? (e.g. an --energy-ratio far from the data: every step rejected by
+    // the safeguard, or steps of 1e-11 pixels; the summary line alone looked like a registration)
+    double       moved = 0.0; // the accepted steps' largest updates added up: a bound on any voxel's displacement
+    unsigned int rejected = 0;
+    for (const auto & r : history)
+    {
+      moved += r.stepScale > 0.0 ? r.maxUpdate : 0.0;
+      rejected += r.stepScale > 0.0 ? 0 : 1;
+    }
+    if (moved < 0.01)
+    {
+      std::cout << "note: the registration hardly moved anything: its steps add up to at most " << moved
+                << " pixels, and " << rejected << " of " << history.size()
+                << " steps were rejected because they would have raised the MSSD; check --energy-ratio (default "
+                   "0.02), --lambda and --mu\n";
+    }
+  }
 
   // outputs
   auto field = method->GetDisplacementField();

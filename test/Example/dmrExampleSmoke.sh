@@ -387,6 +387,7 @@ run-3d)
   check "registration exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 dynamic 20 3 "$W/fixed3d.nii.gz"
+  check "a run that registers prints no 'hardly moved' note" bash -c "! grep -q 'hardly moved' '$W/stdout'"
   check "report: fixed_mask recorded" grep -q '"fixed_mask": "' "$out/report.json"
   # non-zero = inside, whatever the value: a soft mask's 0.5 and a label 256 were cast to 0 (outside) when the mask
   # was read as unsigned char, and a NaN was undefined
@@ -421,6 +422,13 @@ run-3d)
   check "--intensity-window run: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
   dw=$("$DICE" "$W/out-window/warped.nii.gz" "$W/fixed3d.nii.gz" 1.05)
   check "warped.nii.gz keeps intensities above the window (Dice of {> 1.05} is $dw)" awk_true "${dw:-0} > 0.3"
+  # an --energy-ratio far from the data: the safeguard rejects every step, the run "completes" and moved nothing; the
+  # tool says so (the summary line alone looked like a registration)
+  run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/out-still" --nodes 100 \
+    --iterations 2 --threads 2 --energy-ratio 1e6
+  check "--energy-ratio 1e6: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+  check "--energy-ratio 1e6: the note says nothing moved ($(grep note "$W/stdout"))" \
+    grep -q "note: the registration hardly moved anything: .* 2 of 2 steps were rejected" "$W/stdout"
   ;;
 bad-3d-options)
   check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
