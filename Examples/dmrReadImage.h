@@ -146,15 +146,13 @@ CheckDicomSliceGeometry(const std::string & directory, const std::vector<std::st
   {
     return;
   }
-  // the last slice's position (Image Position (Patient), which GDCM gives as the origin) against the first one's
-  auto positionOf = [](const std::string & file) {
-    auto reader = itk::ImageFileReader<TImage>::New();
-    reader->SetImageIO(itk::GDCMImageIO::New());
-    reader->SetFileName(file);
-    reader->UpdateOutputInformation();
-    return reader->GetOutput()->GetOrigin();
-  };
-  const auto   stack = positionOf(files.back()) - positionOf(files.front());
+  // the last slice's position (Image Position (Patient), which GDCM gives as the origin; its header only) against the
+  // first one's, which the series reader made the volume's origin
+  auto last = itk::ImageFileReader<TImage>::New();
+  last->SetImageIO(itk::GDCMImageIO::New());
+  last->SetFileName(files.back());
+  last->UpdateOutputInformation();
+  const auto   stack = last->GetOutput()->GetOrigin() - image->GetOrigin();
   const auto & direction = image->GetDirection();
   double       along = 0.0;
   for (unsigned int r = 0; r < TImage::ImageDimension; ++r)

@@ -246,7 +246,7 @@ private:
   bool                      m_PyramidComplete{ false }; // every level holds its images and moving gradient
   const void *              m_PyramidFixed{ nullptr };  // identity of the inputs the pyramids were built from
   const void *              m_PyramidMoving{ nullptr };
-  double                    m_IntensityRange{ 0.0 }; // of the moving image, times the intensity scale
+  double                    m_MovingForceScale{ 0.0 }; // 2 R^2 / h of the moving image's range, times scale^2
   std::vector<float>        m_GridForce;
   // levels 1.. of the fixed pyramid interpolated at every fine pixel (they do not depend on the field; built on the
   // first GenerateData after the pyramids where they take at most 256 MiB, else interpolated every time)

@@ -423,7 +423,9 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
       }
     }
   }
-  m_IntensityRange = m_IntensityScale * (movingRange.second - movingRange.first);
+  // the floor of alpha (ComputeAlpha): the force scale of the moving image's working range
+  const double workingMovingRange = m_IntensityScale * (movingRange.second - movingRange.first);
+  m_MovingForceScale = 2.0 * workingMovingRange * workingMovingRange / minSpacing;
   m_PyramidTime = inputTime;
   m_PyramidFixed = fixed;
   m_PyramidMoving = moving;
@@ -653,13 +655,7 @@ DensityFieldFilter<TF, TM, TD, TO>::ComputeAlpha(double meanSquaredForce) const
   }
   // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the
   // density would vanish: fall back to a floor relative to the squared force scale of the intensity range.
-  const auto spacing = this->GetFixedImage()->GetSpacing();
-  double     minSpacing = spacing[0];
-  for (unsigned int k = 1; k < ImageDimension; ++k)
-  {
-    minSpacing = std::min(minSpacing, static_cast<double>(spacing[k]));
-  }
-  const double forceScale = 2.0 * m_IntensityRange * m_IntensityRange / minSpacing;
+  const double forceScale = m_MovingForceScale;
   // (constant images: any positive value gives the same uniform density; keep it representable as float)
   const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
   return std::max(m_AlphaFactor * meanSquaredForce, floor);

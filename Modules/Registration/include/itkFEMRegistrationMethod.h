@@ -216,7 +216,7 @@ public:
   double
   GetBeta() const
   {
-    return m_Beta * m_EnergyToImageUnits;
+    return m_Beta * this->EnergyToImageUnits();
   }
   itkGetConstMacro(CurrentIteration, unsigned int);
   const std::vector<IterationRecord> &
@@ -319,6 +319,13 @@ private:
    * iteration itself works in the density filter's units, in which the force, beta and the MSSD agree). */
   void
   AppendToHistory(IterationRecord record);
+  /** 1 / the density filter's intensity scale squared: its energies to the images' units (1 before any run). */
+  double
+  EnergyToImageUnits() const
+  {
+    const double scale = m_DensityFilter->GetIntensityScale();
+    return 1.0 / (scale * scale);
+  }
   /** The step safeguard, one rule for both back-ends: tries W o exp(s u) for s = 1, 1/2, ... while the candidate's
    * MSSD is above record.mssd (at most MaximumStepHalvings halvings; none checked when it is 0). apply(s) makes the
    * candidate for s and returns its largest update (pixels); candidateMSSD() evaluates the force at the candidate and
@@ -358,8 +365,7 @@ private:
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
 
-  double                       m_Beta{ 0.0 };               // in the density filter's units; GetBeta() converts
-  double                       m_EnergyToImageUnits{ 1.0 }; // 1 / intensity scale^2 of the run
+  double                       m_Beta{ 0.0 }; // in the density filter's units; GetBeta() converts
   unsigned int                 m_CurrentIteration{ 0 };
   double                       m_FinalSSD{ 0.0 };
   double                       m_FinalMSSD{ 0.0 };

@@ -427,9 +427,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   {
     m_StopConditionDescription = "completed the " + std::to_string(m_NumberOfIterations) + " iterations";
   }
-  m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
-  m_FinalSSD = m_DensityFilter->GetSSD() * dV * m_EnergyToImageUnits;
-  m_FinalMSSD = m_DensityFilter->GetMSSD() * dV * m_EnergyToImageUnits;
+  const double energyToImageUnits = this->EnergyToImageUnits();
+  m_FinalSSD = m_DensityFilter->GetSSD() * dV * energyToImageUnits;
+  m_FinalMSSD = m_DensityFilter->GetMSSD() * dV * energyToImageUnits;
   m_Timing.registration += seconds(t0, Clock::now());
   // free the per-voxel working memory before the transform's double copy of the field is made (peak RSS)
   for (auto * v : { &w, &update, &expUpdate })
@@ -480,7 +480,6 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Timing = Timing();
   m_StopConditionDescription.clear();
   m_Beta = 0.0;
-  m_EnergyToImageUnits = 1.0;
   m_CurrentMesh = nullptr;
   ++m_CurrentMeshVersion;
 }
@@ -489,11 +488,10 @@ template <typename TF, typename TM, typename TD>
 void
 FEMRegistrationMethod<TF, TM, TD>::AppendToHistory(IterationRecord record)
 {
-  const double scale = m_DensityFilter->GetIntensityScale(); // set by the pyramids, built before any record
-  m_EnergyToImageUnits = 1.0 / (scale * scale);
-  record.mssd *= m_EnergyToImageUnits;
-  record.ssd *= m_EnergyToImageUnits;
-  record.total *= m_EnergyToImageUnits;
+  const double toImageUnits = this->EnergyToImageUnits(); // the pyramids, built before any record, set the scale
+  record.mssd *= toImageUnits;
+  record.ssd *= toImageUnits;
+  record.total *= toImageUnits;
   m_History.push_back(record);
 }
 
@@ -1071,9 +1069,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   {
     m_StopConditionDescription = "completed the " + std::to_string(m_NumberOfIterations) + " iterations";
   }
-  m_EnergyToImageUnits = 1.0 / (m_DensityFilter->GetIntensityScale() * m_DensityFilter->GetIntensityScale());
-  m_FinalSSD = statistics.ssd * dV * m_EnergyToImageUnits;
-  m_FinalMSSD = statistics.mssd * dV * m_EnergyToImageUnits;
+  const double energyToImageUnits = this->EnergyToImageUnits();
+  m_FinalSSD = statistics.ssd * dV * energyToImageUnits;
+  m_FinalMSSD = statistics.mssd * dV * energyToImageUnits;
   using FieldValueType = typename DisplacementFieldType::PixelType::ValueType;
   if constexpr (std::is_same_v<FieldValueType, float> &&
                 sizeof(typename DisplacementFieldType::PixelType) == D * sizeof(float))
