@@ -136,6 +136,10 @@ ParseArguments(int argc, char * argv[])
   {
     throw UsageError("--output-dir is required (see --help)");
   }
+  dmrtools::RefuseOutputOverInput(opt.outputDir,
+                                  { "fixed.nii.gz", "moving.nii.gz", "truth-displacement.nii.gz", "lung-mask.nii.gz" },
+                                  "--input",
+                                  opt.input);
   return opt;
 }
 

@@ -96,6 +96,54 @@ struct Staging
   }
 };
 
+/** The directory entry that path names, as an absolute path: its folder with symbolic links and ".." resolved, its own
+ * name kept (a link is an entry of its own). Writing to one path replaces what another names exactly when their
+ * entries are equal: the tools move finished files into place, and a rename replaces the entry, not what a link at it
+ * points to. A folder that does not exist is kept as written (collapsed to an absolute path). */
+inline std::string
+DirectoryEntry(const std::string & path)
+{
+  const std::string full = itksys::SystemTools::CollapseFullPath(path);
+  std::string       folder = itksys::SystemTools::GetFilenamePath(full);
+  if (itksys::SystemTools::FileIsDirectory(folder))
+  {
+    folder = itksys::SystemTools::GetRealPath(folder);
+  }
+  return folder + "/" + itksys::SystemTools::GetFilenameName(full);
+}
+
+/** Throws a UsageError when writing one of the files `names` into outputDir would replace the input at `path` (given
+ * with `flag`): the tools read their inputs before they write, so such a run went through and destroyed the input. */
+inline void
+RefuseOutputOverInput(const std::string &              outputDir,
+                      const std::vector<std::string> & names,
+                      const std::string &              flag,
+                      const std::string &              path)
+{
+  const std::string entry = DirectoryEntry(path);
+  for (const std::string & name : names)
+  {
+    if (DirectoryEntry(outputDir + "/" + name) == entry)
+    {
+      throw UsageError("the output " + name + " in --output-dir would replace the input " + flag + " " + path +
+                       ": choose another output directory");
+    }
+  }
+}
+
+/** True when name is one of the numbered meshes the registration tool writes: mesh_NNNN.vtu (four or more digits). */
+inline bool
+IsNumberedMeshName(const std::string & name)
+{
+  const std::string head = "mesh_", tail = ".vtu";
+  if (name.size() < head.size() + 4 + tail.size() || name.compare(0, head.size(), head) != 0 ||
+      name.compare(name.size() - tail.size(), tail.size(), tail) != 0)
+  {
+    return false;
+  }
+  return std::all_of(name.begin() + head.size(), name.end() - tail.size(), [](char c) { return c >= '0' && c <= '9'; });
+}
+
 /** Writes text into the file at path and checks that all of it got there: a full disk shows only when the stream is
  * flushed, and an unchecked std::ofstream left a cut energy.csv or report.json that was then committed as a result.
  * Throws std::runtime_error when any of it could not be written. */

@@ -39,6 +39,7 @@
 #include "itkNearestNeighborInterpolateImageFunction.h"
 #include "itkCommand.h"
 #include "itkMultiThreaderBase.h"
+#include "itksys/Directory.hxx"
 #include "itksys/SystemTools.hxx"
 
 #ifdef DMR_WITH_VTK
@@ -57,6 +58,7 @@
 #include <vtkLogger.h>
 #endif
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstdlib>
@@ -71,6 +73,7 @@
 #include <string>
 #include <type_traits>
 #include <unistd.h>
+#include <vector>
 #include <sys/resource.h>
 
 namespace
@@ -140,7 +143,9 @@ const char * const Usage =
   "  --report FILE          JSON report (default D/report.json)\n"
   "  --help, --version\n"
   "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u),\n"
-  "  jacobian.nii.gz (det of I + grad u), energy.csv, mesh_NNNN.vtu + mesh.pvd, report.json\n";
+  "  jacobian.nii.gz (det of I + grad u), energy.csv, mesh_NNNN.vtu + mesh.pvd, report.json; they replace those of an\n"
+  "  earlier run in D (its other mesh_NNNN.vtu files are removed), and an output that would replace an input is "
+  "refused\n";
 
 long
 ParseInteger(const std::string & flag, const std::string & value)
@@ -183,6 +188,67 @@ bool
 ReportInOutputDirectory(const Options & opt)
 {
   return !opt.outputDir.empty() && ReportDirectory(opt) == itksys::SystemTools::CollapseFullPath(opt.outputDir);
+}
+
+/** The run reads its inputs before it writes anything, so an output named like an input would go through and destroy
+ * that input (a --report naming the fixed image overwrote it with the JSON; D/warped.nii.gz given as the moving image
+ * was replaced). Throws a UsageError naming both. */
+void
+RefuseOutputsOverInputs(const Options & opt)
+{
+  std::string folder = dmrtools::DirectoryEntry(opt.outputDir + "/x"); // the output directory (links resolved) + "/x"
+  folder.pop_back();
+  std::vector<std::pair<std::string, std::string>> inputs = { { "--fixed", opt.fixed },
+                                                              { "--moving", opt.moving },
+                                                              { "--fixed-mask", opt.fixedMask },
+                                                              { "--fixed-landmarks", opt.fixedLandmarks },
+                                                              { "--moving-landmarks", opt.movingLandmarks },
+                                                              { "--truth-displacement", opt.truthDisplacement } };
+  if (opt.mesh != "dynamic" && opt.mesh != "regular")
+  {
+    inputs.emplace_back("--mesh", opt.mesh);
+  }
+  const std::string              report = opt.report.empty() ? "" : dmrtools::DirectoryEntry(opt.report);
+  const std::vector<std::string> written = { "warped.nii.gz", "displacement.nii.gz", "jacobian.nii.gz", "energy.csv",
+                                             "mesh.pvd",      "report.json" };
+  // the name of the output in D that entry is (empty if none)
+  auto outputNamed = [&](const std::string & entry) -> std::string {
+    if (entry.compare(0, folder.size(), folder) != 0 || entry.find('/', folder.size()) != std::string::npos)
+    {
+      return "";
+    }
+    const std::string name = entry.substr(folder.size());
+    const bool        ours = std::find(written.begin(), written.end(), name) != written.end();
+    return ours || dmrtools::IsNumberedMeshName(name) ? name : "";
+  };
+  const std::string reportOver = report.empty() ? "" : outputNamed(report);
+  if (!reportOver.empty() && reportOver != "report.json") // D/report.json is the report already
+  {
+    throw UsageError("--report " + opt.report + " would replace the output " + reportOver +
+                     ": choose another file name");
+  }
+  for (const auto & [flag, path] : inputs)
+  {
+    if (path.empty())
+    {
+      continue;
+    }
+    const std::string entry = dmrtools::DirectoryEntry(path);
+    std::string       output;
+    if (entry == report)
+    {
+      output = "--report";
+    }
+    else if (!outputNamed(entry).empty())
+    {
+      output = "the output " + outputNamed(entry) + " in --output-dir";
+    }
+    if (!output.empty())
+    {
+      throw UsageError(output + " would replace the input " + flag + " " + path +
+                       ": choose another output directory or file name");
+    }
+  }
 }
 
 Options
@@ -336,6 +402,7 @@ ParseArguments(int argc, char * argv[])
     if (itksys::SystemTools::FileIsDirectory(opt.report))
       throw UsageError("--report names a directory: " + opt.report);
   }
+  RefuseOutputsOverInputs(opt);
   return opt;
 }
 
@@ -1191,6 +1258,19 @@ Run(const Options & opt)
     }
   }
   staging.Commit();
+  // numbered meshes of an earlier run in D that this run did not write would pass for this run's (a run with
+  // --save-mesh-every 10 and a shorter one after it left mesh_0010.vtu ... beside the new mesh.pvd)
+  itksys::Directory listing;
+  listing.Load(opt.outputDir);
+  for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+  {
+    const std::string name = listing.GetFile(i);
+    if (dmrtools::IsNumberedMeshName(name) &&
+        std::none_of(meshFiles.begin(), meshFiles.end(), [&](const auto & m) { return m.second == name; }))
+    {
+      std::remove((opt.outputDir + "/" + name).c_str());
+    }
+  }
   std::cout << "registered " << opt.moving << " -> " << opt.fixed << " in " << t.total << " s (" << history.size()
             << " iterations, " << meshMode << " mesh, SSD " << ssdInitial << " -> " << method->GetFinalSSD()
             << ", det J in [" << jacobianRange.first << ", " << jacobianRange.second << "])\n"

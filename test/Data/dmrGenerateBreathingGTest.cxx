@@ -298,4 +298,13 @@ TEST(GenerateBreathingTool, BadInputGivesOneLineAndWritesNothing)
   EXPECT_TRUE(OneLineError(RunTool("--input " + scratch.Path() + "/bright.nii.gz --output-dir " + out, scratch.Path()),
                            "no lung region found"));
   EXPECT_EQ(Listing(out), std::vector<std::string>{ "keep.txt" });
+  // an input that an output would replace (the tool read it first and went through: --size replaced the CT by its
+  // resampled copy)
+  itksys::SystemTools::CopyAFile(scratch.Path() + "/ct.nii.gz", out + "/fixed.nii.gz");
+  const std::string copy = out + "/fixed.nii.gz";
+  EXPECT_TRUE(OneLineError(
+    RunTool("--input " + copy + " --output-dir " + scratch.Path() + "/./out --size 24,20,16", scratch.Path()),
+    "the output fixed.nii.gz in --output-dir would replace the input --input"));
+  EXPECT_EQ(Listing(out), (std::vector<std::string>{ "fixed.nii.gz", "keep.txt" }));
+  EXPECT_FALSE(itksys::SystemTools::FilesDiffer(copy, scratch.Path() + "/ct.nii.gz"));
 }

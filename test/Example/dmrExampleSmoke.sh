@@ -566,6 +566,58 @@ bad-output-is-a-file)
   check "stderr starts with '$PREFIX'" grep -q "^$PREFIX" "$W/stderr"
   check "the file is unchanged" test "$(md5sum "$W/afile")" = "$before"
   ;;
+bad-output-replaces-input)
+  # the run reads its inputs first, so an output named like an input went through and destroyed it: a --report naming
+  # the fixed image overwrote it with the JSON, D/warped.nii.gz given as the moving image was replaced
+  first="$W/first"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$first" --nodes 30 --iterations 3
+  check "first run exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  cp "$DATA/fixed.nii.gz" "$W/fixed-copy.nii.gz"
+  ln -s first "$W/link-to-first"
+  rm -f "$W/stdout" "$W/stderr"
+  kept=$(snapshot "$W")
+  for args in \
+    "moving-is-warped|--fixed $DATA/fixed.nii.gz --moving $first/warped.nii.gz --output-dir $first" \
+    "moving-through-a-link|--fixed $DATA/fixed.nii.gz --moving $W/link-to-first/warped.nii.gz --output-dir $first/." \
+    "out-dir-through-a-link|--fixed $DATA/fixed.nii.gz --moving $first/warped.nii.gz --output-dir $W/link-to-first" \
+    "report-is-fixed|--fixed $W/fixed-copy.nii.gz --moving $DATA/moving.nii.gz --output-dir $W/out --report $W/fixed-copy.nii.gz" \
+    "mesh-of-the-earlier-run|--fixed $DATA/fixed.nii.gz --moving $DATA/moving.nii.gz --output-dir $first --mesh $first/mesh_0003.vtu" \
+    "mask-is-jacobian|--fixed $DATA/fixed.nii.gz --moving $DATA/moving.nii.gz --output-dir $first/../first --fixed-mask $first/jacobian.nii.gz" \
+    "report-over-an-output|--fixed $DATA/fixed.nii.gz --moving $DATA/moving.nii.gz --output-dir $first --report $first/energy.csv"; do
+    name=${args%%|*}
+    read -r -a argv <<<"${args#*|}"
+    run_reg --nodes 30 --iterations 3 "${argv[@]}"
+    echo "[$name] exit $RC, stderr: $(cat "$W/stderr")"
+    check "$name: refused as a usage error (exit 2)" test "$RC" = 2
+    check "$name: one line saying what would be replaced" \
+      bash -c "test \$(wc -l <'$W/stderr') = 1 && grep -q '^$PREFIX .*would replace' '$W/stderr'"
+    rm -f "$W/stdout" "$W/stderr"
+    check "$name: nothing in $W changed" test "$(snapshot "$W")" = "$kept"
+  done
+  ;;
+run-again-in-the-same-directory)
+  # the outputs of a second run in D replace the first run's; the first run's other numbered meshes went unremoved
+  # beside the new mesh.pvd and passed for the second run's
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 6 \
+    --save-mesh-every 2
+  check "first run exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check "first run: meshes 1, 2, 4, 6" test "$(cd "$out" && echo mesh_*.vtu)" = \
+    "mesh_0001.vtu mesh_0002.vtu mesh_0004.vtu mesh_0006.vtu"
+  echo "the user's" >"$out/notes.txt" && echo "the user's" >"$out/mesh_final.vtu" && echo "x" >"$out/mesh_12.vtu"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 3
+  cat "$W/stdout" "$W/stderr"
+  check "second run exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 3 dynamic 30
+  check "only the second run's numbered meshes are left" test "$(cd "$out" && echo mesh_[0-9][0-9][0-9][0-9]*.vtu)" = \
+    "mesh_0001.vtu mesh_0003.vtu"
+  check "mesh.pvd names them" test "$(grep -o 'file="[^"]*"' "$out/mesh.pvd" | tr '\n' ' ')" = \
+    'file="mesh_0001.vtu" file="mesh_0003.vtu" '
+  check "files the tool does not write are kept" test -f "$out/notes.txt" -a -f "$out/mesh_final.vtu" -a -f "$out/mesh_12.vtu"
+  ;;
 # bug reproducers (disabled in CMakeLists.txt until the tool is fixed)
 bad-report-path)
   expect_bad_input report-path --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
