@@ -316,5 +316,8 @@ Run(const Options & opt)
 int
 main(int argc, char * argv[])
 {
-  return dmrtools::RunReportingErrors("dmrGenerateBreathing", [&]() { return Run(ParseArguments(argc, argv)); });
+  return dmrtools::RunReportingErrors("dmrGenerateBreathing", [&]() {
+    dmrtools::CatchInterruptSignals(); // an interrupted run commits nothing (Staging::Commit)
+    return Run(ParseArguments(argc, argv));
+  });
 }

@@ -31,6 +31,7 @@ int
 main(int argc, char * argv[])
 {
   return dmrtools::RunReportingErrors("dmrGenerateShapes", [&]() {
+    dmrtools::CatchInterruptSignals(); // an interrupted run commits nothing (Staging::Commit)
     using dmrtools::UsageError;
     std::string shape, outputDir;
     long        fidelityNodes = 100;

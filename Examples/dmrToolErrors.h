@@ -22,6 +22,7 @@
 // (2 for bad input, 1 for a failure while running).
 #include "itkMacro.h"
 #include "itkObject.h"
+#include <csignal>
 #include <iostream>
 #include <stdexcept>
 #include <string>
@@ -60,7 +61,73 @@ OneLine(std::string message)
   return out;
 }
 
-/** Runs a tool's body and turns every exception into "<tool>: error: <one line>" on stderr and an exit code. */
+/** The number of the interrupting signal (SIGINT, SIGTERM, SIGHUP) a tool received, 0 while none. */
+inline volatile std::sig_atomic_t &
+InterruptSignal()
+{
+  static volatile std::sig_atomic_t signalNumber = 0;
+  return signalNumber;
+}
+
+/** Thrown where a tool notices an interruption; not a std::exception, so that no handler of errors rewraps it. */
+struct Interrupted
+{
+  int signalNumber;
+};
+
+/** Throws Interrupted once an interrupting signal arrived. The tools call it between their steps (the registration
+ * tool also stops the registration at the next iteration), so that the staged outputs are removed on the way out. */
+inline void
+ThrowIfInterrupted()
+{
+  if (InterruptSignal() != 0)
+  {
+    throw Interrupted{ static_cast<int>(InterruptSignal()) };
+  }
+}
+
+extern "C" inline void
+RecordInterruptSignal(int signalNumber)
+{
+  InterruptSignal() = signalNumber; // the handler resets itself (SA_RESETHAND): a second signal ends the process
+}
+
+/** Catches SIGINT, SIGTERM and SIGHUP: the first one is recorded for ThrowIfInterrupted, which the tool must then call
+ * (Staging::Commit does). A signal that is ignored when the tool starts (a background job of a non-interactive shell
+ * ignores SIGINT) stays ignored. */
+inline void
+CatchInterruptSignals()
+{
+  for (int signalNumber : { SIGINT, SIGTERM, SIGHUP })
+  {
+    struct sigaction current = {};
+    if (sigaction(signalNumber, nullptr, &current) != 0 || current.sa_handler == SIG_IGN)
+    {
+      continue;
+    }
+    struct sigaction action = {};
+    action.sa_handler = RecordInterruptSignal;
+    sigemptyset(&action.sa_mask);
+    action.sa_flags = SA_RESETHAND | SA_RESTART;
+    sigaction(signalNumber, &action, nullptr);
+  }
+}
+
+/** Ends the process by the signal that interrupted it, as if it had not been caught (the calling shell or scheduler
+ * sees the signal, not an exit code), after a one-line message; returns 128 + the signal number if that fails. */
+inline int
+EndByInterruptSignal(const char * tool, int signalNumber)
+{
+  const char * name = signalNumber == SIGINT ? "SIGINT" : signalNumber == SIGTERM ? "SIGTERM" : "SIGHUP";
+  std::cerr << tool << ": interrupted (" << name << "); the run's outputs were not written\n";
+  std::cerr.flush();
+  std::signal(signalNumber, SIG_DFL);
+  std::raise(signalNumber);
+  return 128 + signalNumber;
+}
+
+/** Runs a tool's body and turns every exception into "<tool>: error: <one line>" on stderr and an exit code; an
+ * Interrupted exception (after CatchInterruptSignals) ends the process by its signal once the body has cleaned up. */
 template <typename TBody>
 int
 RunReportingErrors(const char * tool, TBody && body)
@@ -69,6 +136,10 @@ RunReportingErrors(const char * tool, TBody && body)
   try
   {
     return body();
+  }
+  catch (const Interrupted & e)
+  {
+    return EndByInterruptSignal(tool, e.signalNumber);
   }
   catch (const UsageError & e)
   {

@@ -68,6 +68,7 @@ struct Staging
   void
   Commit()
   {
+    ThrowIfInterrupted(); // an interrupted run commits nothing (the destructor removes the staged outputs)
     itksys::Directory listing;
     listing.Load(stage);
     for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)

@@ -738,6 +738,7 @@ Run(const Options & opt)
   {
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
+  dmrtools::ThrowIfInterrupted();
   // NaN or infinite intensities, reported at the voxel of the file as read (before any window or resampling)
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
@@ -1029,6 +1030,7 @@ Run(const Options & opt)
     throw UsageError(WithoutItkPrefix(e.GetDescription()));
   }
 
+  dmrtools::ThrowIfInterrupted();
   dmrtools::Staging                                 staging(opt.outputDir);
   std::vector<std::pair<unsigned int, std::string>> meshFiles;
   auto                                              saveMesh = [&](unsigned int iteration) {
@@ -1049,6 +1051,10 @@ Run(const Options & opt)
   observer->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
     auto *             c = static_cast<Context *>(data);
     const unsigned int it = c->method->GetCurrentIteration();
+    if (dmrtools::InterruptSignal() != 0)
+    {
+      c->method->AbortGenerateDataOn(); // Ctrl-C: the registration ends before its next iteration
+    }
     if (it == 1 || it == c->last || (c->every > 0 && it % c->every == 0))
     {
       (*c->save)(it);
@@ -1064,6 +1070,7 @@ Run(const Options & opt)
   {
     throw std::runtime_error("registration failed: " + WithoutItkPrefix(e.GetDescription()));
   }
+  dmrtools::ThrowIfInterrupted();
   const auto & history = method->GetHistory();
   size_t       deviceSolves = 0, cgProducts = 0;
   for (const auto & r : history)
@@ -1111,7 +1118,9 @@ Run(const Options & opt)
   resample->SetInterpolator(itk::LinearInterpolateImageFunction<ImageType, double>::New());
   resample->Update();
   dmrtools::WriteImage(resample->GetOutput(), staging.Path("warped.nii.gz"));
+  dmrtools::ThrowIfInterrupted();
   dmrtools::WriteImage(field, staging.Path("displacement.nii.gz"));
+  dmrtools::ThrowIfInterrupted();
   std::pair<double, double> jacobianRange;
   auto jacobian = itk::dmr::JacobianDeterminantImage(field, jacobianRange, method->GetMultiThreader());
   dmrtools::WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
@@ -1235,6 +1244,7 @@ Run(const Options & opt)
        << "}\n";
   const std::string reportName = "report.json";
   dmrtools::WriteTextFile(staging.Path(reportName), json.str());
+  dmrtools::ThrowIfInterrupted(); // before a --report outside D is written
   if (!opt.report.empty())
   {
     // A report inside the output directory is staged and committed with the outputs. One elsewhere is written before
@@ -1284,6 +1294,8 @@ int
 main(int argc, char * argv[])
 {
   return dmrtools::RunReportingErrors("itkDynamicMeshRegistration", [&]() {
+    // Ctrl-C or a scheduler's SIGTERM: the run stops at its next step and leaves no staged outputs behind
+    dmrtools::CatchInterruptSignals();
     const Options opt = ParseArguments(argc, argv);
     if (opt.threads > 0)
     {

@@ -618,6 +618,51 @@ run-again-in-the-same-directory)
     'file="mesh_0001.vtu" file="mesh_0003.vtu" '
   check "files the tool does not write are kept" test -f "$out/notes.txt" -a -f "$out/mesh_final.vtu" -a -f "$out/mesh_12.vtu"
   ;;
+interrupted)
+  # Ctrl-C (SIGINT), SIGTERM (a scheduler's time limit) or SIGHUP during a run: the tool stops at its next step, removes
+  # its staged outputs and ends by the signal. Before, the process died at once and left D/.dmr-partial-PID (with the
+  # first mesh in it), and a D that it had created.
+  previous="$W/previous"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$previous" --nodes 30 --iterations 2
+  check "an earlier run exits 0" test "$RC" = 0
+  rm -f "$W/stdout" "$W/stderr"
+  kept=$(snapshot "$previous")
+  set -m # job control: a background job keeps SIGINT (a non-interactive shell would start it with SIGINT ignored)
+  for sig in INT TERM HUP; do
+    for out in "$W/new-$sig" "$previous"; do
+      "$REG" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 \
+        --iterations 1000000 --threads 2 >"$W/stdout" 2>"$W/stderr" &
+      pid=$!
+      # wait until the registration runs (its first mesh is staged), at most 60 s
+      for _ in $(seq 600); do
+        compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu" >/dev/null && break
+        sleep 0.1
+      done
+      check "SIG$sig into $(basename "$out"): the registration was running" compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu"
+      kill -s "$sig" "$pid"
+      ended=0
+      for _ in $(seq 300); do # at most 30 s
+        kill -0 "$pid" 2>/dev/null || { ended=1; break; }
+        sleep 0.1
+      done
+      [ "$ended" = 1 ] || kill -s KILL "$pid"
+      wait "$pid"
+      rc=$?
+      echo "[SIG$sig into $(basename "$out")] exit $rc, stderr: $(cat "$W/stderr")"
+      check "SIG$sig: the tool ended within 30 s" test "$ended" = 1
+      check "SIG$sig: it ended by the signal (status $rc = 128 + $(kill -l "$sig"))" test "$rc" = $((128 + $(kill -l "$sig")))
+      check "SIG$sig: one line on stderr saying so" \
+        bash -c "test \$(wc -l <'$W/stderr') = 1 && grep -q '^itkDynamicMeshRegistration: interrupted (SIG$sig)' '$W/stderr'"
+      if [ "$out" = "$previous" ]; then
+        check "SIG$sig: the earlier run's outputs are unchanged, nothing staged is left" test "$(snapshot "$previous")" = "$kept"
+      else
+        check "SIG$sig: the output directory was not created" test ! -e "$out"
+      fi
+    done
+  done
+  set +m
+  rm -f "$W/stdout" "$W/stderr"
+  ;;
 # bug reproducers (disabled in CMakeLists.txt until the tool is fixed)
 bad-report-path)
   expect_bad_input report-path --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
