@@ -67,6 +67,10 @@ ParseLandmarks(std::istream & in, const std::string & sourceName)
   while (std::getline(in, line))
   {
     ++lineNumber;
+    if (lineNumber == 1 && line.compare(0, 3, "\xEF\xBB\xBF") == 0) // a UTF-8 byte order mark (Windows editors)
+    {
+      line.erase(0, 3);
+    }
     if (!line.empty() && line.back() == '\r') // files written on Windows
     {
       line.pop_back();

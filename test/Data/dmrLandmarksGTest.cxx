@@ -94,6 +94,18 @@ TEST(Landmarks, ParsesDirLabFormat)
   // 2D files hold two numbers per line
   std::istringstream in2("4 5\n6 7\n");
   EXPECT_EQ(dmrtools::ParseLandmarks<2>(in2, "2d").size(), 2u);
+  // a UTF-8 byte order mark at the start (Windows editors write one) was read as part of the first number, and the
+  // message quoted it invisibly: "\"64\" is not a finite number"
+  const auto bom = Parse("\xEF\xBB\xBF"
+                         "64 65 3\r\n1 2 3\r\n");
+  ASSERT_EQ(bom.size(), 2u);
+  EXPECT_DOUBLE_EQ(bom[0][0], 64.0);
+  // only at the start of the file
+  EXPECT_NE(ErrorOf([] {
+              Parse("1 2 3\n\xEF\xBB\xBF"
+                    "4 5 6\n");
+            }).find("test.txt:2:"),
+            std::string::npos);
 }
 
 TEST(Landmarks, MalformedInputThrowsWithLineNumber)
