@@ -142,7 +142,8 @@ const char * const Usage =
   "                         dense_error_mm and dense_error_initial_mm {mean, p95, max} inside the fixed mask (or all)\n"
   "  --report FILE          JSON report (default D/report.json)\n"
   "  --help, --version\n"
-  "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u),\n"
+  "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u; in ITK's\n"
+  "  LPS frame: RAS tools such as nibabel or FSL must negate x and y),\n"
   "  jacobian.nii.gz (det of I + grad u), energy.csv, mesh_NNNN.vtu + mesh.pvd, report.json; they replace those of an\n"
   "  earlier run in D (its other mesh_NNNN.vtu files are removed), and an output that would replace an input is "
   "refused\n";
