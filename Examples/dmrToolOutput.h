@@ -145,6 +145,54 @@ IsNumberedMeshName(const std::string & name)
   return std::all_of(name.begin() + head.size(), name.end() - tail.size(), [](char c) { return c >= '0' && c <= '9'; });
 }
 
+/** s as the contents of a JSON string: quotes, backslashes and control characters escaped, and every byte that is not
+ * part of a valid UTF-8 sequence replaced by U+FFFD. A file name may hold any byte but '/' and NUL: a tab, a newline or
+ * a Latin-1 byte in an input's name made report.json invalid JSON. */
+inline std::string
+JsonEscape(const std::string & s)
+{
+  std::string out;
+  for (size_t i = 0; i < s.size();)
+  {
+    const auto c = static_cast<unsigned char>(s[i]);
+    if (c == '"' || c == '\\')
+    {
+      out += '\\';
+      out += static_cast<char>(c);
+      ++i;
+    }
+    else if (c < 0x20)
+    {
+      const char * hex = "0123456789abcdef";
+      out += "\\u00";
+      out += hex[c >> 4];
+      out += hex[c & 15];
+      ++i;
+    }
+    else if (c < 0x80)
+    {
+      out += static_cast<char>(c);
+      ++i;
+    }
+    else
+    {
+      // a well-formed sequence (RFC 3629: no overlong forms, no surrogates, at most U+10FFFF) is kept as it is
+      const size_t n = c >= 0xC2 && c <= 0xDF ? 2 : c >= 0xE0 && c <= 0xEF ? 3 : c >= 0xF0 && c <= 0xF4 ? 4 : 0;
+      bool         valid = n > 0 && i + n <= s.size();
+      for (size_t k = 1; valid && k < n; ++k)
+      {
+        valid = (static_cast<unsigned char>(s[i + k]) & 0xC0) == 0x80;
+      }
+      const auto second = valid ? static_cast<unsigned char>(s[i + 1]) : 0;
+      valid = valid && !(c == 0xE0 && second < 0xA0) && !(c == 0xED && second >= 0xA0) &&
+              !(c == 0xF0 && second < 0x90) && !(c == 0xF4 && second >= 0x90);
+      out += valid ? s.substr(i, n) : std::string("\\ufffd");
+      i += valid ? n : 1;
+    }
+  }
+  return out;
+}
+
 /** Writes text into the file at path and checks that all of it got there: a full disk shows only when the stream is
  * flushed, and an unchecked std::ofstream left a cut energy.csv or report.json that was then committed as a result.
  * Throws std::runtime_error when any of it could not be written. */

@@ -564,19 +564,6 @@ WriteMeshVTU(const TMesh * mesh, const std::string & path)
 #endif
 }
 
-std::string
-JsonEscape(const std::string & s)
-{
-  std::string out;
-  for (char c : s)
-  {
-    if (c == '"' || c == '\\')
-      out += '\\';
-    out += c;
-  }
-  return out;
-}
-
 /** An ITK exception's description without its "ITK ERROR: " prefix and without the object's address in
  * "Class(0x55d0c0ffee00): " (messages are meant for one line, for a user). */
 std::string
@@ -1185,8 +1172,8 @@ Run(const Options & opt)
   json << std::setprecision(10) << "{\n"
        << "  \"tool\": \"itkDynamicMeshRegistration\",\n"
        << "  \"version\": \"" << DMR_VERSION_STRING << "\",\n"
-       << "  \"fixed\": \"" << JsonEscape(opt.fixed) << "\",\n"
-       << "  \"moving\": \"" << JsonEscape(opt.moving) << "\",\n"
+       << "  \"fixed\": \"" << dmrtools::JsonEscape(opt.fixed) << "\",\n"
+       << "  \"moving\": \"" << dmrtools::JsonEscape(opt.moving) << "\",\n"
        << "  \"dimension\": " << D << ",\n"
        << "  \"size\": [";
   for (unsigned int k = 0; k < D; ++k)
@@ -1197,14 +1184,14 @@ Run(const Options & opt)
        << "  \"nodes\": " << nodes << ",\n"
        << "  \"final_mesh_nodes\": " << (history.empty() ? 0 : history.back().nodes) << ",\n"
        << "  \"iterations\": " << history.size() << ",\n"
-       << "  \"stop_condition\": \"" << JsonEscape(method->GetStopConditionDescription()) << "\",\n"
+       << "  \"stop_condition\": \"" << dmrtools::JsonEscape(method->GetStopConditionDescription()) << "\",\n"
        << "  \"iterations_requested\": " << opt.iterations << ",\n"
        << "  \"levels\": " << opt.levels << ",\n"
        << "  \"mesh_mode\": \"" << meshMode << "\",\n"
        << "  \"backend\": \"" << method->GetBackendUsed() << "\",\n"
        << "  \"device\": "
        << (method->GetBackendUsed() == itk::DynamicMeshRegistrationEnums::Backend::CUDA
-             ? "\"" + JsonEscape(itk::dmr::cuda::DeviceDescription()) + "\""
+             ? "\"" + dmrtools::JsonEscape(itk::dmr::cuda::DeviceDescription()) + "\""
              : std::string("null"))
        << ",\n"
        << "  \"gpu_memory_mb\": " << static_cast<double>(method->GetDeviceBytes()) / (1024.0 * 1024.0) << ",\n"
@@ -1238,7 +1225,8 @@ Run(const Options & opt)
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
        << evaluation << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
        << "  \"moving_overlap\": " << movingOverlap << ",\n"
-       << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + JsonEscape(opt.fixedMask) + "\"") << ",\n"
+       << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + dmrtools::JsonEscape(opt.fixedMask) + "\"")
+       << ",\n"
        << "  \"peak_rss_mb\": " << PeakRSSMiB() << ",\n"
        << "  \"wall_time_s\": " << std::chrono::duration<double>(std::chrono::steady_clock::now() - tRead).count()
        << "\n"

@@ -244,3 +244,25 @@ TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
   EXPECT_EQ(ReadBytes(dir + "/report.json").size(), std::string("{\"later\": 2}\n").size());
   itksys::SystemTools::RemoveADirectory(dir);
 }
+
+// A tab, a newline or a Latin-1 byte in an input's file name made report.json invalid JSON (the names went in with only
+// quotes and backslashes escaped).
+TEST(ToolOutput, JsonEscapeGivesValidJsonStringsForAnyFileName)
+{
+  using dmrtools::JsonEscape;
+  EXPECT_EQ(JsonEscape("plain/name.nii.gz"), "plain/name.nii.gz");
+  EXPECT_EQ(JsonEscape("a\"b\\c"), "a\\\"b\\\\c");
+  EXPECT_EQ(JsonEscape(std::string("t\tn\nr\r\x01\x1f")), "t\\u0009n\\u000ar\\u000d\\u0001\\u001f");
+  // well-formed UTF-8 (2, 3 and 4 bytes) is kept; DEL (0x7f) needs no escape
+  EXPECT_EQ(JsonEscape("\xc3\xa9t\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80 \x7f"),
+            "\xc3\xa9t\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80 \x7f");
+  // not UTF-8: a Latin-1 byte, a lone continuation byte, a cut sequence, an overlong form, a surrogate, beyond U+10FFFF
+  EXPECT_EQ(JsonEscape("caf\xe9.nii"), "caf\\ufffd.nii");
+  EXPECT_EQ(JsonEscape("\x80x"), "\\ufffdx");
+  EXPECT_EQ(JsonEscape("ab\xe2\x82"), "ab\\ufffd\\ufffd");
+  EXPECT_EQ(JsonEscape("\xc0\xaf"), "\\ufffd\\ufffd");
+  EXPECT_EQ(JsonEscape("\xe0\x80\xaf"), "\\ufffd\\ufffd\\ufffd");
+  EXPECT_EQ(JsonEscape("\xed\xa0\x80"), "\\ufffd\\ufffd\\ufffd");
+  EXPECT_EQ(JsonEscape("\xf4\x90\x80\x80"), "\\ufffd\\ufffd\\ufffd\\ufffd");
+  EXPECT_EQ(JsonEscape("\xff"), "\\ufffd");
+}
