@@ -159,6 +159,22 @@ TEST(DensityFieldFilter, BadInputThrows)
     filter->SetFixedImage(image); // no moving image
     EXPECT_THROW(filter->Update(), itk::ExceptionObject);
   }
+  // a direction that is not a rotation (sheared): the force is turned with the direction's transpose, which is its
+  // inverse only for a rotation or reflection, so it was wrong without a word
+  for (const bool inFixed : { true, false })
+  {
+    ImageType::DirectionType sheared;
+    sheared.SetIdentity();
+    sheared[0][1] = 0.4;
+    auto shearedImage = itk::dmr::test::MakeImage<ImageType>(
+      ImageType::SizeType{ { 20, 16 } }, Spacing(1, 1), Origin(0, 0), sheared, Blob(Origin(10, 8)));
+    auto filter = FilterType::New();
+    filter->SetFixedImage(inFixed ? shearedImage : image);
+    filter->SetMovingImage(inFixed ? image : shearedImage);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      filter,
+      { std::string("the ") + (inFixed ? "fixed" : "moving") + " image's direction matrix is not orthonormal" }));
+  }
 }
 
 // Inputs that are outputs of filters not yet run (an ITK pipeline: reader -> ... -> DensityFieldFilter) have no size

@@ -606,6 +606,57 @@ TEST(FEMRegistrationMethod, BadInputThrows)
   }
 }
 
+// The method turns physical vectors into the grid frame with the direction's transpose, its inverse only for a rotation
+// or reflection; ITK and MetaImage headers allow any matrix, and a sheared or scaled direction gave another field
+// without a word. It is refused; rounding in the direction cosines (as headers store them) is not.
+TEST(FEMRegistrationMethod, ADirectionThatIsNotARotationIsRefused)
+{
+  for (const bool inFixed : { true, false })
+  {
+    for (const double shear : { 0.4, 2e-3 })
+    {
+      ImageType::DirectionType sheared;
+      sheared.SetIdentity();
+      sheared[0][1] = shear;
+      auto image = Blob(64, 56, 30, 28, 16, 12);
+      image->SetDirection(sheared);
+      auto method = SmallRegistration(MeshMode::Dynamic, 2);
+      (inFixed ? method->SetFixedImage(image) : method->SetMovingImage(image));
+      EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+        method,
+        { "FEMRegistrationMethod",
+          std::string("the ") + (inFixed ? "fixed" : "moving") + " image's direction matrix",
+          "not orthonormal" }))
+        << "shear " << shear;
+    }
+    ImageType::DirectionType scaled;
+    scaled.SetIdentity();
+    scaled[1][1] = 2.0;
+    auto image = Blob(64, 56, 30, 28, 16, 12);
+    image->SetDirection(scaled);
+    auto method = SmallRegistration(MeshMode::Dynamic, 2);
+    (inFixed ? method->SetFixedImage(image) : method->SetMovingImage(image));
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(method, { "not orthonormal", "up to 3" }));
+  }
+  // a rotation whose cosines are rounded to 5 decimals (as a DICOM header may store them) is accepted and registers
+  const double             angle = 0.3;
+  ImageType::DirectionType rounded;
+  rounded[0][0] = rounded[1][1] = std::round(std::cos(angle) * 1e5) / 1e5;
+  rounded[0][1] = -std::round(std::sin(angle) * 1e5) / 1e5;
+  rounded[1][0] = -rounded[0][1];
+  auto fixed = Blob(64, 56, 30, 28, 16, 12), moving = Blob(64, 56, 34, 27, 12, 12);
+  fixed->SetDirection(rounded);
+  moving->SetDirection(rounded);
+  const double error = itk::dmr::DirectionOrthonormalityError<2>(fixed.GetPointer());
+  EXPECT_GT(error, 0.0);
+  EXPECT_LT(error, 1e-5);
+  auto method = SmallRegistration(MeshMode::Dynamic, 5);
+  method->SetFixedImage(fixed);
+  method->SetMovingImage(moving);
+  ASSERT_NO_THROW(method->Update());
+  EXPECT_LT(method->GetFinalSSD(), method->GetHistory().front().ssd);
+}
+
 TEST(FEMRegistrationMethod, IdenticalImagesStopWithZeroField)
 {
   auto method = MethodType::New();

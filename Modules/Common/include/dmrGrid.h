@@ -339,6 +339,51 @@ GridMismatch(const ImageBase<VDimension> * reference,
   return why.str();
 }
 
+/** The largest |(D^T D - I)_ij| of the image's direction D: 0 for a rotation or reflection. */
+template <unsigned int VDimension>
+double
+DirectionOrthonormalityError(const ImageBase<VDimension> * image)
+{
+  const auto & d = image->GetDirection();
+  double       error = 0.0;
+  for (unsigned int i = 0; i < VDimension; ++i)
+  {
+    for (unsigned int j = 0; j < VDimension; ++j)
+    {
+      double dot = 0.0;
+      for (unsigned int k = 0; k < VDimension; ++k)
+      {
+        dot += d[k][i] * d[k][j];
+      }
+      error = std::max(error, std::abs(dot - (i == j ? 1.0 : 0.0)));
+    }
+  }
+  return error;
+}
+
+/** Entries of D^T D - I up to this are taken as rounding (direction cosines stored with 4 to 6 decimals, as DICOM
+ * headers and NIfTI's single-precision sform hold them); beyond it a direction is sheared or scaled. */
+constexpr double DirectionOrthonormalityTolerance = 1e-3;
+
+/** Why the image's direction is not a rotation or reflection (empty if it is): the method turns physical vectors into
+ * the grid frame with D^T, which is D's inverse only then, so a sheared or scaled direction (ITK and MetaImage headers
+ * allow any matrix) gave wrong forces and fields without a word. name names the image in the reason. */
+template <unsigned int VDimension>
+std::string
+DirectionNotOrthonormal(const ImageBase<VDimension> * image, const char * name)
+{
+  const double error = DirectionOrthonormalityError<VDimension>(image);
+  if (!(error <= DirectionOrthonormalityTolerance))
+  {
+    std::ostringstream why;
+    why << "the " << name << "'s direction matrix is not orthonormal (D^T D differs from the identity by up to "
+        << error << "): the registration needs direction cosines that form a rotation; resample the image onto a grid "
+        << "with orthogonal unit axes";
+    return why.str();
+  }
+  return "";
+}
+
 } // namespace dmr
 } // namespace itk
 

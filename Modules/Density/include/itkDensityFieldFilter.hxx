@@ -89,6 +89,16 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
   };
   checkOnFixedGrid(this->GetDisplacementField(), "displacement field");
   checkOnFixedGrid(this->GetFixedMask(), "fixed mask");
+  for (const auto & [image, name] :
+       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(fixed), "fixed image"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  {
+    const std::string why = image ? dmr::DirectionNotOrthonormal<ImageDimension>(image, name) : std::string();
+    if (!why.empty())
+    {
+      itkExceptionMacro(<< why);
+    }
+  }
 }
 
 template <typename TF, typename TM, typename TD, typename TO>

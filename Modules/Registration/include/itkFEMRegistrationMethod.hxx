@@ -120,6 +120,16 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
 {
   Superclass::VerifyInputInformation();
+  for (const auto & [image, name] :
+       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedImage()), "fixed image"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  {
+    const std::string why = image ? dmr::DirectionNotOrthonormal<ImageDimension>(image, name) : std::string();
+    if (!why.empty())
+    {
+      itkExceptionMacro(<< why);
+    }
+  }
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
   for (unsigned int k = 0; k < ImageDimension; ++k)
