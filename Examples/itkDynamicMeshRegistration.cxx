@@ -371,6 +371,18 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--lambda must be >= 0 and --mu > 0");
   if (opt.energyRatio <= 0 || opt.alphaFactor <= 0)
     throw UsageError("--energy-ratio and --alpha-factor must be positive");
+  for (const auto & [flag, value] : { std::make_pair("--lambda", opt.lambda),
+                                      std::make_pair("--mu", opt.mu),
+                                      std::make_pair("--energy-ratio", opt.energyRatio),
+                                      std::make_pair("--alpha-factor", opt.alphaFactor) })
+  {
+    if (value > itk::FEMRegistrationMethod<itk::Image<float, 2>, itk::Image<float, 2>>::LargestParameterValue)
+    {
+      std::ostringstream message;
+      message << flag << " must be at most 1e30, got " << value;
+      throw UsageError(message.str());
+    }
+  }
   if (opt.deviceSolveMinDofs < 0)
     throw UsageError("--device-solve-min-dofs must be 0 or more");
   if (opt.stepHalvings < 0 || opt.stepHalvings > 30)

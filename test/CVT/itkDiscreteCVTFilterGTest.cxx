@@ -21,6 +21,7 @@
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
+#include <cmath>
 
 namespace
 {
@@ -135,6 +136,14 @@ TEST(DiscreteCVTFilter, BadInputThrows)
     shifted->Allocate(true);
     filter->SetInitialLabels(shifted);
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(filter, { "its region starts at [5, 0]" }));
+  }
+  {
+    // a NaN epsilon passes the clamping setter and stopped no sweep
+    auto filter = FilterType::New();
+    filter->SetInput(MakeDensity());
+    filter->SetNumberOfCells(12);
+    filter->SetEpsilon(std::nan(""));
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(filter, { "Epsilon must be a number in [0, 1], not NaN" }));
   }
 }
 

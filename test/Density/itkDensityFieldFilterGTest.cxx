@@ -175,6 +175,31 @@ TEST(DensityFieldFilter, BadInputThrows)
       filter,
       { std::string("the ") + (inFixed ? "fixed" : "moving") + " image's direction matrix is not orthonormal" }));
   }
+  // an alpha beyond single precision (the density's type) or NaN (which passes the clamping setters): every density
+  // was infinite or NaN, and only the CVT's refusal of it said something, without the reason
+  for (const int which : { 0, 1, 2 })
+  {
+    auto filter = FilterType::New();
+    filter->SetFixedImage(image);
+    filter->SetMovingImage(itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } },
+                                                                Spacing(1, 1),
+                                                                Origin(0, 0),
+                                                                itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                                Blob(Origin(11, 8))));
+    if (which == 0)
+    {
+      filter->SetAlphaFactor(std::nan(""));
+    }
+    else
+    {
+      filter->SetUseFixedAlpha(true);
+      filter->SetAlpha(which == 1 ? 1e39 : std::nan(""));
+    }
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      filter,
+      { "alpha is", which == 0 ? "AlphaFactor nan" : "the fixed Alpha", "finite number within single precision" }))
+      << which;
+  }
 }
 
 // Inputs that are outputs of filters not yet run (an ITK pipeline: reader -> ... -> DensityFieldFilter) have no size

@@ -543,6 +543,11 @@ bad-iterations)
     --iterations 99999999999999999999999
   expect_bad_input regular-size-2-32 --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --mesh regular \
     --regular-size 4294967299
+  # beyond 1e30 the products of the elastic constants, beta and the forces were not finite (--mu 1e308 ended with "the
+  # images already match", --alpha-factor 1e300 with an infinite density)
+  for flag in --lambda --mu --energy-ratio --alpha-factor; do
+    expect_bad_input "${flag#--}-1e31" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" "$flag" 1e31
+  done
   ;;
 bad-missing-mesh)
   expect_bad_input missing-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \

@@ -21,6 +21,8 @@
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
 
+#include <cmath>
+#include <limits>
 #include <random>
 
 namespace
@@ -354,5 +356,24 @@ TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
   EXPECT_EQ(solver->GetNumberOfFreeNodes(), 0u);
   solver->Solve(f, u);
   EXPECT_EQ(u, std::vector<double>(8, 0.0));
+  // NaN passes the clamping setters, and an infinite one is clamped to the largest double (lambda + 2 mu is then
+  // infinite): SetMesh refuses both, where Solve said "Lambda or Mu changed after SetMesh()" (NaN != NaN)
+  for (const auto & [lambda, mu] : { std::make_pair(std::nan(""), 1.0),
+                                     std::make_pair(1.0, std::nan("")),
+                                     std::make_pair(1.0, std::numeric_limits<double>::infinity()) })
+  {
+    auto bad = itk::LinearElasticFEMSolver<2>::New();
+    bad->SetLambda(lambda);
+    bad->SetMu(mu);
+    try
+    {
+      bad->SetMesh(mesh);
+      ADD_FAILURE() << "SetMesh accepted lambda " << lambda << ", mu " << mu;
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      EXPECT_NE(std::string(e.GetDescription()).find("must be finite"), std::string::npos) << e.GetDescription();
+    }
+  }
 }
 } // namespace

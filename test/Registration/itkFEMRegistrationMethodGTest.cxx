@@ -609,6 +609,40 @@ TEST(FEMRegistrationMethod, BadInputThrows)
 // The method turns physical vectors into the grid frame with the direction's transpose, its inverse only for a rotation
 // or reflection; ITK and MetaImage headers allow any matrix, and a sheared or scaled direction gave another field
 // without a word. It is refused; rounding in the direction cosines (as headers store them) is not.
+// NaN passes itkSetClampMacro and infinity is clamped to the largest double: a NaN EnergyRatio gave beta NaN and a run
+// that moved nothing, an infinite Lambda the stop condition "the images already match", an infinite EnergyRatio a NaN
+// density. Such values, and values beyond LargestParameterValue, are refused with the parameter's name.
+TEST(FEMRegistrationMethod, ParametersThatAreNotFiniteOrFarTooLargeAreRefused)
+{
+  const double nan = std::numeric_limits<double>::quiet_NaN(), inf = std::numeric_limits<double>::infinity();
+  using Setter = void (MethodType::*)(double);
+  for (const auto & [name, set] : { std::make_pair("Lambda", static_cast<Setter>(&MethodType::SetLambda)),
+                                    std::make_pair("Mu", static_cast<Setter>(&MethodType::SetMu)),
+                                    std::make_pair("EnergyRatio", static_cast<Setter>(&MethodType::SetEnergyRatio)),
+                                    std::make_pair("AlphaFactor", static_cast<Setter>(&MethodType::SetAlphaFactor)) })
+  {
+    for (const double value : { nan, inf, 1e31 })
+    {
+      auto method = SmallRegistration(MeshMode::Dynamic, 2);
+      ((*method).*set)(value);
+      EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+        method, { std::string(name) + " must be a finite number of at most 1e+30" }))
+        << name << " = " << value;
+    }
+  }
+  auto method = SmallRegistration(MeshMode::Dynamic, 2);
+  method->SetCVTEpsilon(nan);
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(method, { "CVTEpsilon must be a number in [0, 1]" }));
+  // at the bound, the elastic constants scaled together give the run of the default ones: beta absorbs the scale
+  auto reference = SmallRegistration(MeshMode::Dynamic, 10);
+  reference->Update();
+  auto scaled = SmallRegistration(MeshMode::Dynamic, 10);
+  scaled->SetLambda(MethodType::LargestParameterValue);
+  scaled->SetMu(MethodType::LargestParameterValue);
+  scaled->Update();
+  EXPECT_NEAR(scaled->GetFinalSSD(), reference->GetFinalSSD(), 1e-6 * reference->GetFinalSSD());
+}
+
 TEST(FEMRegistrationMethod, ADirectionThatIsNotARotationIsRefused)
 {
   for (const bool inFixed : { true, false })

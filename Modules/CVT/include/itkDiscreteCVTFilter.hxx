@@ -60,6 +60,10 @@ void
 DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
+  if (std::isnan(m_Epsilon)) // passes itkSetClampMacro, and stopped no sweep
+  {
+    itkExceptionMacro("Epsilon must be a number in [0, 1], not NaN");
+  }
   // the labels 0 .. NumberOfCells - 1 must fit the output's pixel type (e.g. at most 256 cells for unsigned char)
   if (static_cast<long double>(m_NumberOfCells - 1) > static_cast<long double>(NumericTraits<LabelType>::max()))
   {

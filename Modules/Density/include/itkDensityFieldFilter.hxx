@@ -659,16 +659,35 @@ template <typename TF, typename TM, typename TD, typename TO>
 double
 DensityFieldFilter<TF, TM, TD, TO>::ComputeAlpha(double meanSquaredForce) const
 {
+  // the density is stored in single precision: an alpha beyond it (or NaN, which passes itkSetClampMacro) made every
+  // pixel's density infinite, and the CVT's refusal of it did not say why
+  auto checked = [this, meanSquaredForce](double alpha) {
+    if (!(alpha <= static_cast<double>(NumericTraits<float>::max())))
+    {
+      std::ostringstream source;
+      if (m_UseFixedAlpha)
+      {
+        source << "the fixed Alpha";
+      }
+      else
+      {
+        source << "AlphaFactor " << m_AlphaFactor << " x the mean |f|^2 " << meanSquaredForce;
+      }
+      itkExceptionMacro("alpha is " << alpha << " (" << source.str()
+                                    << "): it must be a finite number within single precision");
+    }
+    return alpha;
+  };
   if (m_UseFixedAlpha)
   {
-    return m_Alpha;
+    return checked(m_Alpha);
   }
   // Paper 5.1: alpha = 0.1 x the mean importance |f|^2. When the images already match the mean is 0 and the
   // density would vanish: fall back to a floor relative to the squared force scale of the intensity range.
   const double forceScale = m_MovingForceScale;
   // (constant images: any positive value gives the same uniform density; keep it representable as float)
   const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
-  return std::max(m_AlphaFactor * meanSquaredForce, floor);
+  return checked(std::isnan(m_AlphaFactor) ? m_AlphaFactor : std::max(m_AlphaFactor * meanSquaredForce, floor));
 }
 
 template <typename TF, typename TM, typename TD, typename TO>

@@ -70,6 +70,11 @@ template <unsigned int D>
 void
 LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
 {
+  // NaN passes itkSetClampMacro (every comparison with it is false); an infinite lambda + 2 mu fills K with inf
+  if (!std::isfinite(m_Lambda) || !std::isfinite(m_Mu) || !std::isfinite(m_Lambda + 2.0 * m_Mu))
+  {
+    itkExceptionMacro("Lambda (" << m_Lambda << ") and Mu (" << m_Mu << ") must be finite, and so must Lambda + 2 Mu");
+  }
   constexpr unsigned int NV = D + 1;
   const size_t           nNodes = mesh.NumberOfNodes();
   const size_t           nDof = nNodes * D;
@@ -224,7 +229,7 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
   {
     itkExceptionMacro("Solve() needs SetMesh() first");
   }
-  if (m_AssembledLambda != m_Lambda || m_AssembledMu != m_Mu)
+  if (!(m_AssembledLambda == m_Lambda && m_AssembledMu == m_Mu))
   {
     itkExceptionMacro("Lambda or Mu changed after SetMesh(): call SetMesh() again to re-assemble K");
   }

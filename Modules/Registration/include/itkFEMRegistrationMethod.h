@@ -150,6 +150,9 @@ public:
   itkGetConstMacro(NumberOfNodes, SizeValueType);
   itkSetClampMacro(NumberOfLevels, unsigned int, 1, 8);
   itkGetConstMacro(NumberOfLevels, unsigned int);
+  /** The largest Lambda, Mu, EnergyRatio and AlphaFactor accepted (Update() refuses larger ones and NaN). */
+  static constexpr double LargestParameterValue = 1e30;
+
   itkSetClampMacro(Lambda, double, 0.0, NumericTraits<double>::max());
   itkGetConstMacro(Lambda, double);
   itkSetClampMacro(Mu, double, NumericTraits<double>::epsilon(), NumericTraits<double>::max());

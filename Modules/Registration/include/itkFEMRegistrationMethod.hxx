@@ -105,6 +105,25 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
+  // NaN passes itkSetClampMacro (every comparison with it is false), and infinity is clamped to the largest double: a
+  // NaN EnergyRatio gave beta NaN and a run that moved nothing, an infinite Lambda a stiffness of infinities and the
+  // stop condition "the images already match", an infinite EnergyRatio a NaN density. Values far beyond any use
+  // (1e30) are refused as well, so that the products of the elastic constants, beta and the forces stay finite.
+  for (const auto & [name, value] : { std::make_pair("Lambda", m_Lambda),
+                                      std::make_pair("Mu", m_Mu),
+                                      std::make_pair("EnergyRatio", m_EnergyRatio),
+                                      std::make_pair("AlphaFactor", m_AlphaFactor) })
+  {
+    if (!(std::abs(value) <= LargestParameterValue))
+    {
+      itkExceptionMacro(<< name << " must be a finite number of at most " << LargestParameterValue << ", got "
+                        << value);
+    }
+  }
+  if (std::isnan(m_CVTEpsilon))
+  {
+    itkExceptionMacro("CVTEpsilon must be a number in [0, 1], got " << m_CVTEpsilon);
+  }
   if (m_MeshMode == MeshModeEnum::Static && this->GetStaticMesh() == nullptr)
   {
     itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
