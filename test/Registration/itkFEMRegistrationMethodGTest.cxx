@@ -556,6 +556,16 @@ TEST(FEMRegistrationMethod, BadInputThrows)
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
       fewNodes, { "the dynamic mesh has no free node", "all " + std::to_string(nodes) + " cells", "use more nodes" }));
   }
+  // a strip: 40 cells along it, and the dual mesh has a node at image corners that no cell holds (the message counted
+  // the mesh's 42 nodes as cells)
+  {
+    auto strip = MethodType::New();
+    strip->SetFixedImage(Blob(300, 8, 150, 4, 3, 3));
+    strip->SetMovingImage(Blob(300, 8, 152, 4, 3, 3));
+    strip->SetNumberOfNodes(40);
+    strip->SetNumberOfIterations(2);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(strip, { "has no free node: all 40 cells" }));
+  }
 
   // a mask is read pixel for pixel with the fixed image: one that is not on its grid is refused, with the reason
   for (const int what : { 0, 1 })

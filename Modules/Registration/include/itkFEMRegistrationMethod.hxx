@@ -541,13 +541,14 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
   {
     if (m_CurrentIteration <= 1)
     {
+      // (the count of cells the user asked for: the mesh also has a node at each image corner that no cell holds)
       itkExceptionMacro("the dynamic mesh has no free node: all "
-                        << mesh.NumberOfNodes()
+                        << m_NumberOfNodes
                         << " cells of the tessellation touch the border of the image, where the displacement is "
                            "fixed, so nothing can move; use more nodes");
     }
     std::ostringstream why;
-    why << "the dynamic mesh of iteration " << m_CurrentIteration << " has no free node (all " << mesh.NumberOfNodes()
+    why << "the dynamic mesh of iteration " << m_CurrentIteration << " has no free node (all " << m_NumberOfNodes
         << " cells touch the border of the image, where the displacement is fixed): the transformation of "
            "iteration "
         << m_CurrentIteration - 1 << " is the result";
