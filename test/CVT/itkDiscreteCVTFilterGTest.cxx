@@ -145,6 +145,18 @@ TEST(DiscreteCVTFilter, BadInputThrows)
     filter->SetEpsilon(std::nan(""));
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(filter, { "Epsilon must be a number in [0, 1], not NaN" }));
   }
+  {
+    // a sheared direction: the CVT's distances are the grid's scaled by the spacing, physical only for a rotation
+    auto density = MakeDensity();
+    auto direction = density->GetDirection();
+    direction[0][1] = 0.4;
+    density->SetDirection(direction);
+    auto filter = FilterType::New();
+    filter->SetInput(density);
+    filter->SetNumberOfCells(12);
+    EXPECT_TRUE(
+      itk::dmr::test::UpdateThrowsMentioning(filter, { "the density image's direction matrix is not orthonormal" }));
+  }
 }
 
 // An input that is the output of a filter not yet run has no size until the pipeline's information pass reaches it.

@@ -18,6 +18,7 @@
 #include "itkDualMeshFilter.h"
 #include "dmrDualMeshPhantom.h"
 #include "dmrObjectChecks.h"
+#include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
 
 #include <map>
@@ -252,6 +253,24 @@ TEST(DualMeshFilter, BadLabelsThrow)
   auto filter3D = itk::DualMeshFilter<Label3DType>::New();
   filter3D->SetInput(labels3D);
   EXPECT_THROW(filter3D->Update(), itk::ExceptionObject); // a flat 3D image has no volume to tetrahedralize
+
+  // a sheared direction: the mesh is built in the grid frame scaled by the spacing, which is the physical frame only
+  // for a rotation or reflection
+  for (size_t p = 0; p < 48; ++p)
+  {
+    labels->GetBufferPointer()[p] = (p % 8) < 4 ? 0 : 1;
+  }
+  LabelImageType::DirectionType sheared;
+  sheared.SetIdentity();
+  sheared[0][1] = 0.4;
+  labels->SetDirection(sheared);
+  labels->Modified();
+  EXPECT_TRUE(
+    itk::dmr::test::UpdateThrowsMentioning(filter, { "the label image's direction matrix is not orthonormal" }));
+  sheared.SetIdentity();
+  labels->SetDirection(sheared);
+  labels->Modified();
+  EXPECT_NO_THROW(filter->Update());
 }
 /** Nodes on the box border, checked for exact placement and for sliver elements. */
 ::testing::AssertionResult

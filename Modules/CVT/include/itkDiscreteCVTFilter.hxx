@@ -78,6 +78,12 @@ void
 DiscreteCVTFilter<TDensityImage, TLabelImage>::VerifyInputInformation() ITKv5_CONST
 {
   Superclass::VerifyInputInformation();
+  // the CVT's distances are the grid's, scaled by the spacing: the physical ones only when the direction is a rotation
+  const std::string skew = dmr::DirectionNotOrthonormal<ImageDimension>(this->GetInput(), "density image");
+  if (!skew.empty())
+  {
+    itkExceptionMacro(<< skew);
+  }
   const auto numberOfPixels = this->GetInput()->GetLargestPossibleRegion().GetNumberOfPixels();
   if (m_NumberOfCells > numberOfPixels)
   {

@@ -57,6 +57,12 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData()
   }
   if constexpr (D == 2 || D == 3)
   {
+    // the mesh is a Delaunay mesh of the grid frame scaled by the spacing, the physical frame only for a rotation
+    const std::string skew = dmr::DirectionNotOrthonormal<D>(labels, "label image");
+    if (!skew.empty())
+    {
+      itkExceptionMacro(<< skew);
+    }
     const auto   grid = dmr::Grid<D>::FromImage(labels);
     const auto * L = labels->GetBufferPointer();
     int64_t      maxLabel = -1;
