@@ -61,6 +61,25 @@ OneLine(std::string message)
   return out;
 }
 
+/** text without ITK's "ITK ERROR: " prefixes and without the object's address in "Class(0x55d0c0ffee00): " after one
+ * (ITK's exception descriptions carry both, also inside a message that quotes one; they are meant for developers). */
+inline std::string
+WithoutItkPrefix(std::string text)
+{
+  const std::string prefix = "ITK ERROR: ";
+  for (auto at = text.find(prefix); at != std::string::npos; at = text.find(prefix, at))
+  {
+    text.erase(at, prefix.size());
+    const auto open = text.find("(0x", at);
+    const auto close = open == std::string::npos ? open : text.find("): ", open);
+    if (close != std::string::npos && text.find(' ', at) > open)
+    {
+      text.erase(open, close + 1 - open);
+    }
+  }
+  return text;
+}
+
 /** The number of the interrupting signal (SIGINT, SIGTERM, SIGHUP) a tool received, 0 while none. */
 inline volatile std::sig_atomic_t &
 InterruptSignal()
@@ -143,17 +162,17 @@ RunReportingErrors(const char * tool, TBody && body)
   }
   catch (const UsageError & e)
   {
-    std::cerr << tool << ": error: " << OneLine(e.what()) << '\n';
+    std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.what())) << '\n';
     return 2;
   }
   catch (const itk::ExceptionObject & e)
   {
-    std::cerr << tool << ": error: " << OneLine(e.GetDescription()) << '\n';
+    std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.GetDescription())) << '\n';
     return 1;
   }
   catch (const std::exception & e)
   {
-    std::cerr << tool << ": error: " << OneLine(e.what()) << '\n';
+    std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.what())) << '\n';
     return 1;
   }
 }

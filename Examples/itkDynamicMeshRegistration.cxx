@@ -576,26 +576,6 @@ WriteMeshVTU(const TMesh * mesh, const std::string & path)
 #endif
 }
 
-/** An ITK exception's description without its "ITK ERROR: " prefix and without the object's address in
- * "Class(0x55d0c0ffee00): " (messages are meant for one line, for a user). */
-std::string
-WithoutItkPrefix(std::string text)
-{
-  const std::string prefix = "ITK ERROR: ";
-  const auto        at = text.find(prefix);
-  if (at != std::string::npos)
-  {
-    text.erase(at, prefix.size());
-    const auto open = text.find("(0x", at);
-    const auto close = open == std::string::npos ? open : text.find("): ", open);
-    if (close != std::string::npos && text.find(' ', at) > open)
-    {
-      text.erase(open, close + 1 - open);
-    }
-  }
-  return text;
-}
-
 /** Share of the reference image's pixels whose physical point lies inside the image's buffer, where ResampleOnto
  * interpolates it (outside, it gets the default value): estimated on a grid of at most 64 points per axis; when none
  * of those is inside, counted over every pixel, so 0 means that none is inside. */
@@ -896,7 +876,7 @@ Run(const Options & opt)
     }
     catch (const itk::ExceptionObject & e)
     {
-      throw UsageError("landmarks: " + WithoutItkPrefix(e.GetDescription()));
+      throw UsageError("landmarks: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
     }
     const auto size = fixed->GetLargestPossibleRegion().GetSize();
     for (size_t i = 0; i < landmarks.fixed.size(); ++i)
@@ -1027,7 +1007,7 @@ Run(const Options & opt)
   }
   catch (const itk::ExceptionObject & e)
   {
-    throw UsageError(WithoutItkPrefix(e.GetDescription()));
+    throw UsageError(dmrtools::WithoutItkPrefix(e.GetDescription()));
   }
 
   dmrtools::ThrowIfInterrupted();
@@ -1068,7 +1048,7 @@ Run(const Options & opt)
   }
   catch (const itk::ExceptionObject & e)
   {
-    throw std::runtime_error("registration failed: " + WithoutItkPrefix(e.GetDescription()));
+    throw std::runtime_error("registration failed: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
   }
   dmrtools::ThrowIfInterrupted();
   const auto & history = method->GetHistory();
@@ -1166,7 +1146,7 @@ Run(const Options & opt)
     }
     catch (const itk::ExceptionObject & e)
     {
-      throw UsageError("landmarks: " + WithoutItkPrefix(e.GetDescription()));
+      throw UsageError("landmarks: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
     }
   }
   if (truth)

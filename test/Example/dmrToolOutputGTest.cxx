@@ -266,3 +266,19 @@ TEST(ToolOutput, JsonEscapeGivesValidJsonStringsForAnyFileName)
   EXPECT_EQ(JsonEscape("\xf4\x90\x80\x80"), "\\ufffd\\ufffd\\ufffd\\ufffd");
   EXPECT_EQ(JsonEscape("\xff"), "\\ufffd");
 }
+
+// The tools' one-line errors: ITK's "ITK ERROR: " prefix and the object's address were left in messages that quote an
+// ITK exception (e.g. "cannot read an image from F: ITK ERROR: ITK only supports orthonormal direction cosines...").
+TEST(ToolErrors, ItkPrefixesAndAddressesAreRemovedEverywhereInAMessage)
+{
+  using dmrtools::WithoutItkPrefix;
+  EXPECT_EQ(WithoutItkPrefix("ITK ERROR: FEMRegistrationMethod(0x55d0c0ffee00): Mu must be finite"),
+            "FEMRegistrationMethod: Mu must be finite");
+  EXPECT_EQ(WithoutItkPrefix("cannot read an image from f.nii: ITK ERROR: ITK only supports orthonormal direction "
+                             "cosines. No orthonormal definition found!"),
+            "cannot read an image from f.nii: ITK only supports orthonormal direction cosines. No orthonormal "
+            "definition found!");
+  EXPECT_EQ(WithoutItkPrefix("a: ITK ERROR: A(0x1): first; b: ITK ERROR: B(0x2a): second"),
+            "a: A: first; b: B: second");
+  EXPECT_EQ(WithoutItkPrefix("no prefix (0x12): kept"), "no prefix (0x12): kept");
+}
