@@ -23,6 +23,7 @@
 #include "itkMacro.h"
 #include "itkObject.h"
 #include <csignal>
+#include <signal.h> // sigaction (POSIX)
 #include <iostream>
 #include <stdexcept>
 #include <string>

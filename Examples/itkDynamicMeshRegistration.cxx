@@ -376,10 +376,12 @@ ParseArguments(int argc, char * argv[])
                                       std::make_pair("--energy-ratio", opt.energyRatio),
                                       std::make_pair("--alpha-factor", opt.alphaFactor) })
   {
-    if (value > itk::FEMRegistrationMethod<itk::Image<float, 2>, itk::Image<float, 2>>::LargestParameterValue)
+    constexpr double largest =
+      itk::FEMRegistrationMethod<itk::Image<float, 2>, itk::Image<float, 2>>::LargestParameterValue;
+    if (value > largest)
     {
       std::ostringstream message;
-      message << flag << " must be at most 1e30, got " << value;
+      message << flag << " must be at most " << largest << ", got " << value;
       throw UsageError(message.str());
     }
   }
