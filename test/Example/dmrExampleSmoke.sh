@@ -638,6 +638,9 @@ interrupted)
       "$REG" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 \
         --iterations 1000000 --threads 2 >"$W/stdout" 2>"$W/stderr" &
       pid=$!
+      # never leave the run behind (it has its own process group), also when ctest stops this script at its timeout
+      trap 'kill -s KILL "$pid" 2>/dev/null' EXIT
+      trap 'kill -s KILL "$pid" 2>/dev/null; exit 1' TERM INT HUP
       # wait until the registration runs (its first mesh is staged), at most 60 s
       for _ in $(seq 600); do
         compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu" >/dev/null && break
@@ -666,6 +669,7 @@ interrupted)
     done
   done
   set +m
+  trap - EXIT TERM INT HUP
   rm -f "$W/stdout" "$W/stderr"
   ;;
 # bug reproducers (disabled in CMakeLists.txt until the tool is fixed)
