@@ -24,6 +24,7 @@
 #include "itkObject.h"
 #include <csignal>
 #include <signal.h> // sigaction (POSIX)
+#include <time.h>   // clock_gettime (POSIX)
 #include <iostream>
 #include <stdexcept>
 #include <string>
@@ -106,15 +107,45 @@ ThrowIfInterrupted()
   }
 }
 
+/** Milliseconds on the monotonic clock (clock_gettime may be called in a signal handler). */
+inline long long
+MonotonicMilliseconds()
+{
+  struct timespec now = {};
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return static_cast<long long>(now.tv_sec) * 1000 + now.tv_nsec / 1000000;
+}
+
+/** The time of the first interrupting signal (written only by the handler, which blocks the others while it runs). */
+inline long long &
+FirstInterruptMilliseconds()
+{
+  static long long milliseconds = 0;
+  return milliseconds;
+}
+
+/** Records the first interrupting signal. A later one ends the process at once (the default action) if it comes at
+ * least a second after the first: one that comes sooner is the same request delivered twice, which `timeout` does
+ * (to the process, then to its process group) and which ended the process before it had removed its staged outputs. */
 extern "C" inline void
 RecordInterruptSignal(int signalNumber)
 {
-  InterruptSignal() = signalNumber; // the handler resets itself (SA_RESETHAND): a second signal ends the process
+  const long long now = MonotonicMilliseconds();
+  if (InterruptSignal() == 0)
+  {
+    FirstInterruptMilliseconds() = now;
+    InterruptSignal() = signalNumber;
+  }
+  else if (now - FirstInterruptMilliseconds() >= 1000)
+  {
+    std::signal(signalNumber, SIG_DFL);
+    std::raise(signalNumber); // delivered when the handler returns (the signal is blocked while it runs)
+  }
 }
 
 /** Catches SIGINT, SIGTERM and SIGHUP: the first one is recorded for ThrowIfInterrupted, which the tool must then call
- * (Staging::Commit does). A signal that is ignored when the tool starts (a background job of a non-interactive shell
- * ignores SIGINT) stays ignored. */
+ * (Staging::Commit does); another one a second or more later ends the process at once (RecordInterruptSignal). A signal
+ * that is ignored when the tool starts (a background job of a non-interactive shell ignores SIGINT) stays ignored. */
 inline void
 CatchInterruptSignals()
 {
@@ -128,7 +159,11 @@ CatchInterruptSignals()
     struct sigaction action = {};
     action.sa_handler = RecordInterruptSignal;
     sigemptyset(&action.sa_mask);
-    action.sa_flags = SA_RESETHAND | SA_RESTART;
+    for (int blocked : { SIGINT, SIGTERM, SIGHUP })
+    {
+      sigaddset(&action.sa_mask, blocked);
+    }
+    action.sa_flags = SA_RESTART;
     sigaction(signalNumber, &action, nullptr);
   }
 }

@@ -26,10 +26,12 @@
 #include "itksys/Directory.hxx"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
+#include <cerrno>
 #include <cstdio>
 #include <fstream>
 #include <stdexcept>
 #include <string>
+#include <signal.h>
 #include <unistd.h>
 #include <vector>
 #include <zlib.h>
@@ -54,10 +56,38 @@ struct Staging
     {
       throw UsageError("--output-dir exists and is not a directory: " + dir);
     }
+    else
+    {
+      RemoveStagingOfEndedRuns();
+    }
     stage = dir + "/.dmr-partial-" + std::to_string(::getpid());
     if (!itksys::SystemTools::MakeDirectory(stage))
     {
       throw UsageError("cannot create the output directory " + dir);
+    }
+  }
+  /** A run that was killed (SIGKILL after a scheduler's grace period, the out-of-memory killer) leaves its staging
+   * folder behind; the folders of runs whose process no longer exists are removed (a live one may be another run's). */
+  void
+  RemoveStagingOfEndedRuns() const
+  {
+    const std::string prefix = ".dmr-partial-";
+    itksys::Directory listing;
+    listing.Load(dir);
+    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+    {
+      const std::string name = listing.GetFile(i);
+      const std::string digits = name.compare(0, prefix.size(), prefix) == 0 ? name.substr(prefix.size()) : "";
+      if (digits.empty() || digits.size() > 9 || digits.find_first_not_of("0123456789") != std::string::npos ||
+          !itksys::SystemTools::FileIsDirectory(dir + "/" + name))
+      {
+        continue;
+      }
+      const pid_t pid = static_cast<pid_t>(std::stol(digits));
+      if (pid > 0 && ::kill(pid, 0) != 0 && errno == ESRCH)
+      {
+        itksys::SystemTools::RemoveADirectory(dir + "/" + name);
+      }
     }
   }
   std::string

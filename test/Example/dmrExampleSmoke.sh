@@ -603,7 +603,7 @@ bad-output-replaces-input)
   ;;
 run-again-in-the-same-directory)
   # the outputs of a second run in D replace the first run's; the first run's other numbered meshes went unremoved
-  # beside the new mesh.pvd and passed for the second run's
+  # beside the new mesh.pvd and passed for the second run's, and a killed run's staging folder stayed for good
   out="$W/out"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 6 \
     --save-mesh-every 2
@@ -612,10 +612,17 @@ run-again-in-the-same-directory)
   check "first run: meshes 1, 2, 4, 6" test "$(cd "$out" && echo mesh_*.vtu)" = \
     "mesh_0001.vtu mesh_0002.vtu mesh_0004.vtu mesh_0006.vtu"
   echo "the user's" >"$out/notes.txt" && echo "the user's" >"$out/mesh_final.vtu" && echo "x" >"$out/mesh_12.vtu"
+  # a staging folder of a run that was killed (SIGKILL, the out-of-memory killer) and one of a run still going on
+  sleep 0 & dead=$!
+  wait "$dead"
+  mkdir -p "$out/.dmr-partial-$dead" "$out/.dmr-partial-$$" && echo "x" >"$out/.dmr-partial-$dead/mesh_0001.vtu"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 3
   cat "$W/stdout" "$W/stderr"
   check "second run exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
+  check "the staging folder of the ended run ($dead) is removed" test ! -e "$out/.dmr-partial-$dead"
+  check "the staging folder of the live process ($$) is kept" test -d "$out/.dmr-partial-$$"
+  rmdir "$out/.dmr-partial-$$"
   check_run_outputs "$out" 3 dynamic 30
   check "only the second run's numbered meshes are left" test "$(cd "$out" && echo mesh_[0-9][0-9][0-9][0-9]*.vtu)" = \
     "mesh_0001.vtu mesh_0003.vtu"
@@ -648,6 +655,9 @@ interrupted)
       done
       check "SIG$sig into $(basename "$out"): the registration was running" compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu"
       kill -s "$sig" "$pid"
+      # the same request delivered twice at once (as `timeout` does, to the process and to its process group): before,
+      # the second one ended the process by the default action and left its staged outputs behind
+      kill -s "$sig" "$pid" 2>/dev/null
       ended=0
       for _ in $(seq 300); do # at most 30 s
         kill -0 "$pid" 2>/dev/null || { ended=1; break; }
