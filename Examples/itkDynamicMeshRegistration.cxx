@@ -1043,6 +1043,17 @@ Run(const Options & opt)
     }
   });
   method->AddObserver(itk::IterationEvent(), observer);
+  // within an iteration as well: the registration passes on the progress of its long steps (the CVT), and an abort set
+  // there stops it at once (a first iteration on a CT took minutes to notice a SIGTERM)
+  auto onProgress = itk::CStyleCommand::New();
+  onProgress->SetClientData(method.GetPointer());
+  onProgress->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
+    if (dmrtools::InterruptSignal() != 0)
+    {
+      static_cast<MethodType *>(data)->AbortGenerateDataOn();
+    }
+  });
+  method->AddObserver(itk::ProgressEvent(), onProgress);
 
   try
   {
@@ -1050,6 +1061,7 @@ Run(const Options & opt)
   }
   catch (const itk::ExceptionObject & e)
   {
+    dmrtools::ThrowIfInterrupted(); // the registration stopped because of it (ProcessAborted)
     throw std::runtime_error("registration failed: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
   }
   dmrtools::ThrowIfInterrupted();

@@ -17,10 +17,12 @@
  *=========================================================================*/
 #include "itkDiscreteCVTFilter.h"
 #include "itkCastImageFilter.h"
+#include "itkCommand.h"
 #include "dmrCVTBackend.h"
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
+#include <algorithm>
 #include <cmath>
 
 namespace
@@ -325,6 +327,79 @@ TEST(DiscreteCVTFilter, RepeatedRunsGiveIdenticalLabels)
   a->Modified();
   a->Update();
   EXPECT_EQ(LabelsOf(a->GetOutput()), LabelsOf(b->GetOutput()));
+}
+
+// The contraction and the CPU sweeps report progress from inside their loops, and an observer's AbortGenerateData stops
+// them there with ProcessAborted (ITK's convention); before, the filter noticed neither until it had finished, which
+// took minutes on a CT. A later Update runs normally and gives the labels of a filter that was never stopped.
+TEST(DiscreteCVTFilter, AbortGenerateDataStopsTheContractionAndTheSweepsFromWithin)
+{
+  // 400 x 300 pixels: the contraction passes its checkpoint (every 65536 merges) twice, then the sweeps each once
+  const ImageType::SizeType size{ { 400, 300 } };
+  auto                      density = itk::dmr::test::ImageFromBuffer<ImageType>(
+    size, ImageType::SpacingType(1.0), itk::dmr::test::RandomDensity(size[0] * size[1], 3u));
+  for (const int abortAtEvent : { 1, 3, -1 }) // in the contraction, in the sweeps, never
+  {
+    auto filter = FilterType::New();
+    filter->SetInput(density);
+    filter->SetNumberOfCells(40);
+    filter->SetBlockSize(1);
+    struct Context
+    {
+      FilterType *       filter;
+      int                events;
+      int                abortAt;
+      int                workAfterAbort; // reports of further work after the abort was set
+      std::vector<float> progress;
+    } context{ filter.GetPointer(), 0, abortAtEvent, 0, {} };
+    auto observer = itk::CStyleCommand::New();
+    observer->SetClientData(&context);
+    observer->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
+      auto *      c = static_cast<Context *>(data);
+      const float p = c->filter->GetProgress();
+      if (c->filter->GetAbortGenerateData())
+      {
+        // more work reports progress beyond the last report; ITK's unwinding reports that again, or 1
+        c->workAfterAbort += p > c->progress.back() && p < 1.0f ? 1 : 0;
+        return;
+      }
+      c->progress.push_back(p);
+      if (++c->events == c->abortAt)
+      {
+        c->filter->AbortGenerateDataOn();
+      }
+    });
+    filter->AddObserver(itk::ProgressEvent(), observer);
+    if (abortAtEvent > 0)
+    {
+      EXPECT_THROW(filter->Update(), itk::ProcessAborted) << abortAtEvent;
+      EXPECT_EQ(context.workAfterAbort, 0); // stopped at the checkpoint that saw the abort
+      EXPECT_LT(context.progress.back(), abortAtEvent == 1 ? 1.0f / 3.0f : 2.0f / 3.0f); // within that stage
+      // a later update runs to the end and gives a fresh filter's labels
+      filter->RemoveAllObservers();
+      filter->Modified();
+      filter->Update();
+      auto fresh = FilterType::New();
+      fresh->SetInput(density);
+      fresh->SetNumberOfCells(40);
+      fresh->SetBlockSize(1);
+      fresh->Update();
+      EXPECT_EQ(LabelsOf(filter->GetOutput()), LabelsOf(fresh->GetOutput()));
+    }
+    else
+    {
+      filter->Update();
+      // progress from within both stages, in order
+      EXPECT_GE(
+        std::count_if(context.progress.begin(), context.progress.end(), [](float p) { return p < 1.0f / 3.0f; }), 2);
+      EXPECT_GE(std::count_if(context.progress.begin(),
+                              context.progress.end(),
+                              [](float p) { return p > 1.0f / 3.0f && p < 2.0f / 3.0f; }),
+                1);
+      EXPECT_TRUE(std::is_sorted(context.progress.begin(), context.progress.end()));
+      EXPECT_EQ(context.progress.back(), 1.0f);
+    }
+  }
 }
 
 TEST(DiscreteCVTFilter, FewerCellsOnASecondUpdate)

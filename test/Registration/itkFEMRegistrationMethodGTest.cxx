@@ -440,6 +440,37 @@ TEST(FEMRegistrationMethod, EventsAndAbort)
   EXPECT_EQ(method->GetStopConditionDescription(), "aborted (AbortGenerateData) before iteration 5");
 }
 
+// An abort set while an iteration runs (e.g. on Ctrl-C) waited for the end of the iteration: minutes for the first
+// iteration of a CT on the CPU. The registration now passes on the CVT's progress reports from inside its loops, and an
+// abort set there stops the CVT with ProcessAborted. The method can run again afterwards, to the same result.
+TEST(FEMRegistrationMethod, AnAbortDuringTheFirstIterationStopsItFromWithinTheTessellation)
+{
+  auto method = SmallRegistration(MeshMode::Dynamic, 5);
+  struct Context
+  {
+    MethodType * method;
+    unsigned int events;
+  } context{ method.GetPointer(), 0 };
+  auto observer = itk::CStyleCommand::New();
+  observer->SetClientData(&context);
+  observer->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
+    auto * c = static_cast<Context *>(data);
+    ++c->events;
+    c->method->AbortGenerateDataOn(); // at the first report
+  });
+  method->AddObserver(itk::ProgressEvent(), observer);
+  EXPECT_THROW(method->Update(), itk::ProcessAborted);
+  EXPECT_EQ(method->GetCurrentIteration(), 1u);
+  EXPECT_TRUE(method->GetHistory().empty()); // stopped inside iteration 1
+  method->RemoveAllObservers();
+  method->Modified();
+  ASSERT_NO_THROW(method->Update());
+  auto fresh = SmallRegistration(MeshMode::Dynamic, 5);
+  fresh->Update();
+  EXPECT_EQ(method->GetHistory().size(), 5u);
+  EXPECT_EQ(method->GetFinalSSD(), fresh->GetFinalSSD());
+}
+
 TEST(FEMRegistrationMethod, BadInputThrows)
 {
   auto flat = ImageType::New();

@@ -25,6 +25,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <limits>
 
 namespace itk
@@ -184,6 +185,16 @@ public:
   GetEnergy() const
   {
     return m_Energy;
+  }
+
+  /** A function called on the calling thread between steps of the long loops: every 65536 merges of the contraction
+   * (with the share of merges done) and after every sweep of Optimize (with the share of the sweep limit used). It may
+   * throw to stop the work (DiscreteCVTFilter throws ProcessAborted there when its AbortGenerateData is set); the state
+   * is then incomplete until the next ContractionInitialize or SetLabels. */
+  void
+  SetCheckpoint(std::function<void(double)> checkpoint)
+  {
+    m_Checkpoint = std::move(checkpoint);
   }
 
   /** Which pixels a sub-sweep evaluates; every mode gives the same proposals, hence the same labels and energy
@@ -462,9 +473,14 @@ public:
 
     std::vector<int32_t> parent(numberOfBlocks);
     std::iota(parent.begin(), parent.end(), 0);
-    size_t clusters = numberOfBlocks;
+    size_t       clusters = numberOfBlocks;
+    const size_t merges = numberOfBlocks - numberOfCells;
     while (clusters > numberOfCells && !heap.empty())
     {
+      if (m_Checkpoint && ((numberOfBlocks - clusters) & 0xFFFF) == 0)
+      {
+        m_Checkpoint(static_cast<double>(numberOfBlocks - clusters) / static_cast<double>(merges));
+      }
       // keep the cluster with the longer adjacency list, merge the other into it
       int32_t keep = heap[0].Low(), gone = heap[0].High();
       if (cluster[gone].count > cluster[keep].count)
@@ -788,6 +804,10 @@ public:
       if (swapsThisSweep == 0 || before - m_Energy <= epsilon * before)
       {
         break;
+      }
+      if (m_Checkpoint)
+      {
+        m_Checkpoint(static_cast<double>(sweep + 1) / static_cast<double>(maximumNumberOfSweeps));
       }
     }
     result.energyAfter = m_Energy;
@@ -1595,6 +1615,7 @@ private:
   std::vector<uint8_t>               m_Touched;
   std::vector<LabelType>             m_TouchedList;
   SweepMode                          m_SweepMode{ SweepMode::Auto };
+  std::function<void(double)>        m_Checkpoint;
   int64_t                            m_LinearOffsets[NeighbourhoodSize];
   bool                               m_FaceOrCentre[NeighbourhoodSize];
   // active lists (see class comment)

@@ -177,6 +177,23 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
     }
   }
   m_Core.SetDensity(grid, m_DensityBuffer.data(), this->GetMultiThreader());
+  // progress within the contraction (first third) and the CPU sweeps (second third); AbortGenerateData set by an
+  // observer stops either within 65536 merges or one sweep
+  float stageStart = 0.0f;
+  struct ClearCheckpoint // the checkpoint refers to this call's locals: no later call of the core may reach it
+  {
+    CoreType & core;
+    ~ClearCheckpoint() { core.SetCheckpoint(nullptr); }
+  } clearCheckpoint{ m_Core };
+  m_Core.SetCheckpoint([this, &stageStart](double fraction) {
+    this->UpdateProgress(stageStart + static_cast<float>(fraction) / 3.0f);
+    if (this->GetAbortGenerateData())
+    {
+      ProcessAborted aborted(__FILE__, __LINE__);
+      aborted.SetDescription("DiscreteCVTFilter: AbortGenerateData was set");
+      throw aborted;
+    }
+  });
 
   auto                   t0 = Clock::now();
   const LabelImageType * initial = this->GetInitialLabels();
@@ -207,6 +224,7 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
   progress.CompletedPixel();
 
   t0 = Clock::now();
+  stageStart = 1.0f / 3.0f;
   m_InitialEnergy = m_Core.GetEnergy();
   const auto result = m_BackendUsed == BackendEnum::CUDA ? this->OptimizeOnDevice(grid)
                                                          : m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);

@@ -20,6 +20,7 @@
 
 #include "itkFEMRegistrationMethod.h"
 #include "itkImageRegionConstIterator.h"
+#include "itkCommand.h"
 #include "dmrCudaBackend.h"
 #include "dmrRegistrationBackend.h"
 #include "dmrCVTBackend.h"
@@ -48,6 +49,21 @@ FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
   m_CVTFilter = CVTFilterType::New();
   m_DualMeshFilter = DualMeshFilterType::New();
   m_Solver = SolverType::New();
+  // The CVT filter reports progress inside its long loops (the contraction, the CPU sweeps), which take minutes on a
+  // large CT at the first iteration: the registration passes each report on as its own ProgressEvent (at the current
+  // progress), so that an observer of the registration can set AbortGenerateData, and hands that on to the CVT filter,
+  // which then stops with ProcessAborted. Before, an abort waited for the end of the iteration.
+  auto forward = CStyleCommand::New();
+  forward->SetClientData(this);
+  forward->SetCallback([](Object *, const EventObject &, void * data) {
+    auto * self = static_cast<Self *>(data);
+    self->UpdateProgress(self->GetProgress());
+    if (self->GetAbortGenerateData())
+    {
+      self->m_CVTFilter->AbortGenerateDataOn();
+    }
+  });
+  m_CVTFilter->AddObserver(ProgressEvent(), forward);
 }
 
 template <typename TF, typename TM, typename TD>
