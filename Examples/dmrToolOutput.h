@@ -60,18 +60,39 @@ struct Staging
     {
       RemoveStagingOfEndedRuns();
     }
-    stage = dir + "/.dmr-partial-" + std::to_string(::getpid());
+    stage = dir + "/" + StagingName(::getpid());
     if (!itksys::SystemTools::MakeDirectory(stage))
     {
       throw UsageError("cannot create the output directory " + dir);
     }
   }
+  /** The name of the staging folder of process pid on this host: ".dmr-partial-HOST-PID". The host is part of it
+   * because D may lie on storage that runs on other hosts share, where a process number means nothing here. */
+  static std::string
+  StagingName(long pid)
+  {
+    char host[256] = {};
+    if (::gethostname(host, sizeof(host) - 1) != 0)
+    {
+      host[0] = '\0';
+    }
+    std::string name = ".dmr-partial-";
+    for (const char * c = host; *c; ++c)
+    {
+      const bool plain = (*c >= 'a' && *c <= 'z') || (*c >= 'A' && *c <= 'Z') || (*c >= '0' && *c <= '9') || *c == '.';
+      name += plain ? *c : '_';
+    }
+    return name + "-" + std::to_string(pid);
+  }
+
   /** A run that was killed (SIGKILL after a scheduler's grace period, the out-of-memory killer) leaves its staging
-   * folder behind; the folders of runs whose process no longer exists are removed (a live one may be another run's). */
+   * folder behind; the folders of this host's runs whose process no longer exists are removed (a live one may be
+   * another run's, and another host's processes cannot be checked from here). */
   void
   RemoveStagingOfEndedRuns() const
   {
-    const std::string prefix = ".dmr-partial-";
+    const std::string ours = StagingName(0);
+    const std::string prefix = ours.substr(0, ours.size() - 1); // ".dmr-partial-HOST-"
     itksys::Directory listing;
     listing.Load(dir);
     for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)

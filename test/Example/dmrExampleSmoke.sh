@@ -615,14 +615,18 @@ run-again-in-the-same-directory)
   # a staging folder of a run that was killed (SIGKILL, the out-of-memory killer) and one of a run still going on
   sleep 0 & dead=$!
   wait "$dead"
-  mkdir -p "$out/.dmr-partial-$dead" "$out/.dmr-partial-$$" && echo "x" >"$out/.dmr-partial-$dead/mesh_0001.vtu"
+  # (named .dmr-partial-HOST-PID: another host's folder on shared storage cannot be checked, and is kept)
+  host=$(uname -n | tr -c 'A-Za-z0-9.\n' '_')
+  mkdir -p "$out/.dmr-partial-$host-$dead" "$out/.dmr-partial-$host-$$" "$out/.dmr-partial-otherhost-$dead"
+  echo "x" >"$out/.dmr-partial-$host-$dead/mesh_0001.vtu"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 3
   cat "$W/stdout" "$W/stderr"
   check "second run exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
-  check "the staging folder of the ended run ($dead) is removed" test ! -e "$out/.dmr-partial-$dead"
-  check "the staging folder of the live process ($$) is kept" test -d "$out/.dmr-partial-$$"
-  rmdir "$out/.dmr-partial-$$"
+  check "the staging folder of the ended run ($dead) is removed" test ! -e "$out/.dmr-partial-$host-$dead"
+  check "the staging folder of the live process ($$) is kept" test -d "$out/.dmr-partial-$host-$$"
+  check "another host's staging folder is kept" test -d "$out/.dmr-partial-otherhost-$dead"
+  rmdir "$out/.dmr-partial-$host-$$" "$out/.dmr-partial-otherhost-$dead"
   check_run_outputs "$out" 3 dynamic 30
   check "only the second run's numbered meshes are left" test "$(cd "$out" && echo mesh_[0-9][0-9][0-9][0-9]*.vtu)" = \
     "mesh_0001.vtu mesh_0003.vtu"
@@ -650,10 +654,10 @@ interrupted)
       trap 'kill -s KILL "$pid" 2>/dev/null; exit 1' TERM INT HUP
       # wait until the registration runs (its first mesh is staged), at most 60 s
       for _ in $(seq 600); do
-        compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu" >/dev/null && break
+        compgen -G "$out/.dmr-partial-*-$pid/mesh_0001.vtu" >/dev/null && break
         sleep 0.1
       done
-      check "SIG$sig into $(basename "$out"): the registration was running" compgen -G "$out/.dmr-partial-$pid/mesh_0001.vtu"
+      check "SIG$sig into $(basename "$out"): the registration was running" compgen -G "$out/.dmr-partial-*-$pid/mesh_0001.vtu"
       kill -s "$sig" "$pid"
       # the same request delivered twice at once (as `timeout` does, to the process and to its process group): before,
       # the second one ended the process by the default action and left its staged outputs behind
