@@ -25,6 +25,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <iostream>
+#include <sstream>
 #include <string>
 
 int
@@ -62,14 +63,25 @@ main(int argc, char * argv[])
       {
         throw dmrtools::UsageError("not a scalar 2D or 3D image: " + path);
       }
+      ImageType::Pointer image;
       try
       {
-        return dmrtools::ReadImageOrDicomSeries<ImageType>(path);
+        image = dmrtools::ReadImageOrDicomSeries<ImageType>(path);
       }
       catch (const itk::ExceptionObject & e)
       {
         throw dmrtools::UsageError("cannot read " + path + ": " + e.GetDescription());
       }
+      // a NaN compares false with the threshold: it was counted as outside without a word
+      const auto nonFinite = itk::dmr::FirstNonFinitePixel(image.GetPointer());
+      if (nonFinite >= 0)
+      {
+        std::ostringstream where;
+        where << image->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
+        throw dmrtools::UsageError(path + " has a non-finite value (" +
+                                   std::to_string(image->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str());
+      }
+      return image;
     };
     const auto a = read(argv[1]);
     const auto b = read(argv[2]);

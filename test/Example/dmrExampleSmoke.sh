@@ -245,10 +245,12 @@ generate)
   check "dmrGenerateShapes into a file: exit 2 ($rc), one line on stderr ($(cat "$W/stderr")), nothing on stdout" \
     bash -c "test $rc = 2 && test \$(wc -l <'$W/stderr') = 1 && test ! -s '$W/stdout'"
   # bad input to dmrImageDice: one line, exit 2 (a NaN threshold gave 1, images on different grids a Dice, a missing
-  # file three lines)
+  # file three lines, a NaN voxel was counted as outside)
   "$CHECK" make-2d "$W/other-grid.nii.gz"
+  "$CHECK" make-nonfinite "$W/nonfinite.mha"
   for args in "$DATA/fixed.nii.gz $DATA/moving.nii.gz nan" "$DATA/fixed.nii.gz $DATA/moving.nii.gz 0.5x" \
-              "$DATA/fixed.nii.gz $W/other-grid.nii.gz" "$DATA/fixed.nii.gz $W/missing.nii.gz" "$DATA/fixed.nii.gz"; do
+              "$DATA/fixed.nii.gz $W/other-grid.nii.gz" "$DATA/fixed.nii.gz $W/missing.nii.gz" "$DATA/fixed.nii.gz" \
+              "$W/other-grid.nii.gz $W/nonfinite.mha"; do
     # shellcheck disable=SC2086
     "$DICE" $args >"$W/stdout" 2>"$W/stderr"
     rc=$?
