@@ -23,9 +23,11 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <initializer_list>
 #include <algorithm>
 #include <sstream>
 #include <string>
+#include <utility>
 
 namespace itk
 {
@@ -380,6 +382,23 @@ DirectionNotOrthonormal(const ImageBase<VDimension> * image, const char * name)
         << error << "): the registration needs direction cosines that form a rotation; resample the image onto a grid "
         << "with orthogonal unit axes";
     return why.str();
+  }
+  return "";
+}
+
+/** DirectionNotOrthonormal of the first of the named images that fails it, "" if none does (null images are skipped).
+ */
+template <unsigned int VDimension>
+std::string
+FirstDirectionNotOrthonormal(std::initializer_list<std::pair<const ImageBase<VDimension> *, const char *>> namedImages)
+{
+  for (const auto & [image, name] : namedImages)
+  {
+    const std::string why = image ? DirectionNotOrthonormal<VDimension>(image, name) : std::string();
+    if (!why.empty())
+    {
+      return why;
+    }
   }
   return "";
 }

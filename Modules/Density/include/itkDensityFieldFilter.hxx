@@ -89,15 +89,11 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
   };
   checkOnFixedGrid(this->GetDisplacementField(), "displacement field");
   checkOnFixedGrid(this->GetFixedMask(), "fixed mask");
-  for (const auto & [image, name] :
-       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(fixed), "fixed image"),
-         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  const std::string skew = dmr::FirstDirectionNotOrthonormal<ImageDimension>(
+    { { fixed, "fixed image" }, { this->GetMovingImage(), "moving image" } });
+  if (!skew.empty())
   {
-    const std::string why = image ? dmr::DirectionNotOrthonormal<ImageDimension>(image, name) : std::string();
-    if (!why.empty())
-    {
-      itkExceptionMacro(<< why);
-    }
+    itkExceptionMacro(<< skew);
   }
 }
 
@@ -687,7 +683,7 @@ DensityFieldFilter<TF, TM, TD, TO>::ComputeAlpha(double meanSquaredForce) const
   const double forceScale = m_MovingForceScale;
   // (constant images: any positive value gives the same uniform density; keep it representable as float)
   const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
-  return checked(std::isnan(m_AlphaFactor) ? m_AlphaFactor : std::max(m_AlphaFactor * meanSquaredForce, floor));
+  return checked(std::max(m_AlphaFactor * meanSquaredForce, floor)); // (a NaN product stays NaN: max keeps its first)
 }
 
 template <typename TF, typename TM, typename TD, typename TO>

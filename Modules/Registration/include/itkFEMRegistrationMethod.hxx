@@ -155,15 +155,11 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
 {
   Superclass::VerifyInputInformation();
-  for (const auto & [image, name] :
-       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedImage()), "fixed image"),
-         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  const std::string skew = dmr::FirstDirectionNotOrthonormal<ImageDimension>(
+    { { this->GetFixedImage(), "fixed image" }, { this->GetMovingImage(), "moving image" } });
+  if (!skew.empty())
   {
-    const std::string why = image ? dmr::DirectionNotOrthonormal<ImageDimension>(image, name) : std::string();
-    if (!why.empty())
-    {
-      itkExceptionMacro(<< why);
-    }
+    itkExceptionMacro(<< skew);
   }
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
