@@ -25,7 +25,6 @@
 #include <cmath>
 #include <cstdlib>
 #include <iostream>
-#include <sstream>
 #include <string>
 
 int
@@ -73,13 +72,11 @@ main(int argc, char * argv[])
         throw dmrtools::UsageError("cannot read " + path + ": " + e.GetDescription());
       }
       // a NaN compares false with the threshold: it was counted as outside without a word
-      const auto nonFinite = itk::dmr::FirstNonFinitePixel(image.GetPointer());
-      if (nonFinite >= 0)
+      std::string index;
+      double      value;
+      if (dmrtools::FindNonFiniteVoxel(image.GetPointer(), index, value))
       {
-        std::ostringstream where;
-        where << image->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
-        throw dmrtools::UsageError(path + " has a non-finite value (" +
-                                   std::to_string(image->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str());
+        throw dmrtools::UsageError(path + " has a non-finite value (" + std::to_string(value) + ") at voxel " + index);
       }
       return image;
     };

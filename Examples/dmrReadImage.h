@@ -41,6 +41,7 @@
 #include "itkTimeStamp.h"
 #include "itk_zlib.h"
 #include "dmrImageFileCheck.h"
+#include "dmrImageMetrics.h"
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
@@ -316,6 +317,23 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
     --d;
   }
   return d;
+}
+/** Finds the first NaN or infinite pixel of an image as read: its index as text ("[5, 3]") and its value. Returns false
+ * when every pixel is finite. The tools refuse such images, naming the voxel. */
+template <typename TImage>
+bool
+FindNonFiniteVoxel(const TImage * image, std::string & index, double & value)
+{
+  const auto p = itk::dmr::FirstNonFinitePixel(image);
+  if (p < 0)
+  {
+    return false;
+  }
+  std::ostringstream where;
+  where << image->ComputeIndex(static_cast<itk::OffsetValueType>(p));
+  index = where.str();
+  value = static_cast<double>(image->GetBufferPointer()[p]);
+  return true;
 }
 } // namespace dmrtools
 

@@ -164,6 +164,19 @@ DirectoryEntry(const std::string & path)
   return folder + "/" + itksys::SystemTools::GetFilenameName(full);
 }
 
+/** The name under which path lies directly in directory (compared as directory entries, see DirectoryEntry), or ""
+ * when it lies elsewhere: writing that name into directory would replace what path names. */
+inline std::string
+NameInDirectory(const std::string & directory, const std::string & path)
+{
+  std::string folder = DirectoryEntry(directory + "/x"); // the directory (links resolved) + "/x"
+  folder.pop_back();
+  const std::string entry = DirectoryEntry(path);
+  const bool        inside =
+    entry.compare(0, folder.size(), folder) == 0 && entry.find('/', folder.size()) == std::string::npos;
+  return inside ? entry.substr(folder.size()) : "";
+}
+
 /** Throws a UsageError when writing one of the files `names` into outputDir would replace the input at `path` (given
  * with `flag`): the tools read their inputs before they write, so such a run went through and destroyed the input. */
 inline void
@@ -172,14 +185,11 @@ RefuseOutputOverInput(const std::string &              outputDir,
                       const std::string &              flag,
                       const std::string &              path)
 {
-  const std::string entry = DirectoryEntry(path);
-  for (const std::string & name : names)
+  const std::string name = NameInDirectory(outputDir, path);
+  if (!name.empty() && std::find(names.begin(), names.end(), name) != names.end())
   {
-    if (DirectoryEntry(outputDir + "/" + name) == entry)
-    {
-      throw UsageError("the output " + name + " in --output-dir would replace the input " + flag + " " + path +
-                       ": choose another output directory");
-    }
+    throw UsageError("the output " + name + " in --output-dir would replace the input " + flag + " " + path +
+                     ": choose another output directory");
   }
 }
 

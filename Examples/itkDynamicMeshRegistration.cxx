@@ -197,8 +197,6 @@ ReportInOutputDirectory(const Options & opt)
 void
 RefuseOutputsOverInputs(const Options & opt)
 {
-  std::string folder = dmrtools::DirectoryEntry(opt.outputDir + "/x"); // the output directory (links resolved) + "/x"
-  folder.pop_back();
   std::vector<std::pair<std::string, std::string>> inputs = { { "--fixed", opt.fixed },
                                                               { "--moving", opt.moving },
                                                               { "--fixed-mask", opt.fixedMask },
@@ -212,17 +210,13 @@ RefuseOutputsOverInputs(const Options & opt)
   const std::string              report = opt.report.empty() ? "" : dmrtools::DirectoryEntry(opt.report);
   const std::vector<std::string> written = { "warped.nii.gz", "displacement.nii.gz", "jacobian.nii.gz", "energy.csv",
                                              "mesh.pvd",      "report.json" };
-  // the name of the output in D that entry is (empty if none)
-  auto outputNamed = [&](const std::string & entry) -> std::string {
-    if (entry.compare(0, folder.size(), folder) != 0 || entry.find('/', folder.size()) != std::string::npos)
-    {
-      return "";
-    }
-    const std::string name = entry.substr(folder.size());
+  // the name of the output in D that path is (empty if none)
+  auto outputNamed = [&](const std::string & path) -> std::string {
+    const std::string name = dmrtools::NameInDirectory(opt.outputDir, path);
     const bool        ours = std::find(written.begin(), written.end(), name) != written.end();
     return ours || dmrtools::IsNumberedMeshName(name) ? name : "";
   };
-  const std::string reportOver = report.empty() ? "" : outputNamed(report);
+  const std::string reportOver = opt.report.empty() ? "" : outputNamed(opt.report);
   if (!reportOver.empty() && reportOver != "report.json") // D/report.json is the report already
   {
     throw UsageError("--report " + opt.report + " would replace the output " + reportOver +
@@ -234,15 +228,14 @@ RefuseOutputsOverInputs(const Options & opt)
     {
       continue;
     }
-    const std::string entry = dmrtools::DirectoryEntry(path);
-    std::string       output;
-    if (entry == report)
+    std::string output;
+    if (dmrtools::DirectoryEntry(path) == report)
     {
       output = "--report";
     }
-    else if (!outputNamed(entry).empty())
+    else if (!outputNamed(path).empty())
     {
-      output = "the output " + outputNamed(entry) + " in --output-dir";
+      output = "the output " + outputNamed(path) + " in --output-dir";
     }
     if (!output.empty())
     {
@@ -725,14 +718,12 @@ Run(const Options & opt)
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
-    const auto nonFinite = itk::dmr::FirstNonFinitePixel(named.second);
-    if (nonFinite >= 0)
+    std::string index;
+    double      value;
+    if (dmrtools::FindNonFiniteVoxel(named.second, index, value))
     {
-      std::ostringstream where;
-      where << named.second->ComputeIndex(static_cast<itk::OffsetValueType>(nonFinite));
-      throw UsageError("the " + named.first + " image has a non-finite intensity (" +
-                       std::to_string(named.second->GetBufferPointer()[nonFinite]) + ") at voxel " + where.str() +
-                       ": replace NaN and infinite values first");
+      throw UsageError("the " + named.first + " image has a non-finite intensity (" + std::to_string(value) +
+                       ") at voxel " + index + ": replace NaN and infinite values first");
     }
   }
   typename ImageType::Pointer movingInput = moving; // as read: warped.nii.gz samples it (original intensities)
@@ -797,11 +788,11 @@ Run(const Options & opt)
     {
       throw UsageError("cannot read --fixed-mask: " + std::string(e.GetDescription()));
     }
-    if (const auto p = itk::dmr::FirstNonFinitePixel(values.GetPointer()); p >= 0)
+    std::string index;
+    double      value;
+    if (dmrtools::FindNonFiniteVoxel(values.GetPointer(), index, value))
     {
-      std::ostringstream where;
-      where << values->ComputeIndex(static_cast<itk::OffsetValueType>(p));
-      throw UsageError("--fixed-mask has a non-finite value at voxel " + where.str() + ": " + opt.fixedMask);
+      throw UsageError("--fixed-mask has a non-finite value at voxel " + index + ": " + opt.fixedMask);
     }
     mask = MaskType::New();
     mask->CopyInformation(values);
@@ -878,7 +869,7 @@ Run(const Options & opt)
     }
     catch (const itk::ExceptionObject & e)
     {
-      throw UsageError("landmarks: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
+      throw UsageError(std::string("landmarks: ") + e.GetDescription());
     }
     const auto size = fixed->GetLargestPossibleRegion().GetSize();
     for (size_t i = 0; i < landmarks.fixed.size(); ++i)
@@ -1009,7 +1000,7 @@ Run(const Options & opt)
   }
   catch (const itk::ExceptionObject & e)
   {
-    throw UsageError(dmrtools::WithoutItkPrefix(e.GetDescription()));
+    throw UsageError(e.GetDescription());
   }
 
   dmrtools::ThrowIfInterrupted();
@@ -1033,18 +1024,15 @@ Run(const Options & opt)
   observer->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
     auto *             c = static_cast<Context *>(data);
     const unsigned int it = c->method->GetCurrentIteration();
-    if (dmrtools::InterruptSignal() != 0)
-    {
-      c->method->AbortGenerateDataOn(); // Ctrl-C: the registration ends before its next iteration
-    }
     if (it == 1 || it == c->last || (c->every > 0 && it % c->every == 0))
     {
       (*c->save)(it);
     }
   });
   method->AddObserver(itk::IterationEvent(), observer);
-  // within an iteration as well: the registration passes on the progress of its long steps (the CVT), and an abort set
-  // there stops it at once (a first iteration on a CT took minutes to notice a SIGTERM)
+  // Ctrl-C or SIGTERM: an abort set at the progress report that ends an iteration ends the run before the next one;
+  // one set at a report from inside an iteration's long steps (the CVT) stops it there (a first iteration on a CT took
+  // minutes to notice a SIGTERM)
   auto onProgress = itk::CStyleCommand::New();
   onProgress->SetClientData(method.GetPointer());
   onProgress->SetCallback([](itk::Object *, const itk::EventObject &, void * data) {
@@ -1062,7 +1050,7 @@ Run(const Options & opt)
   catch (const itk::ExceptionObject & e)
   {
     dmrtools::ThrowIfInterrupted(); // the registration stopped because of it (ProcessAborted)
-    throw std::runtime_error("registration failed: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
+    throw std::runtime_error(std::string("registration failed: ") + e.GetDescription());
   }
   dmrtools::ThrowIfInterrupted();
   const auto & history = method->GetHistory();
@@ -1160,7 +1148,7 @@ Run(const Options & opt)
     }
     catch (const itk::ExceptionObject & e)
     {
-      throw UsageError("landmarks: " + dmrtools::WithoutItkPrefix(e.GetDescription()));
+      throw UsageError(std::string("landmarks: ") + e.GetDescription());
     }
   }
   if (truth)
