@@ -60,7 +60,7 @@ struct DeviceLevel
   const float * fixed;
   const float * moving;
   const float * gradient;
-  double        FA[3][3], Fc[3], MA[3][3], Mc[3], MG[3][3];
+  double        FA[3][3], Fc[3], MA[3][3], Mc[3], MB[3][3];
   double        weight;
 };
 
@@ -68,6 +68,7 @@ struct DeviceLevels
 {
   DeviceLevel level[MaxLevels];
   int         count;
+  double      direction[3][3]; // the fixed image's: u = float(Direction w), the CPU path's field image
 };
 
 template <int D>
@@ -185,6 +186,23 @@ AtomicMaxNonNegative(unsigned long long * address, double v)
   atomicMax(address, static_cast<unsigned long long>(__double_as_longlong(v)));
 }
 
+/** out = float(Direction w) per component, as double: the floats of the CPU path's field image (double sums in
+ * column order, rounded once; FEMRegistrationMethod::WriteGridFieldToImage). */
+template <int D>
+__device__ inline void
+PhysicalFloats(const double (&direction)[3][3], const float * w, double * out)
+{
+  for (int r = 0; r < D; ++r)
+  {
+    double v = 0.0;
+    for (int k = 0; k < D; ++k)
+    {
+      v += direction[r][k] * static_cast<double>(w[k]);
+    }
+    out[r] = static_cast<double>(static_cast<float>(v));
+  }
+}
+
 template <int D>
 __global__ void
 ForceKernel(DeviceGrid      g,
@@ -213,13 +231,14 @@ ForceKernel(DeviceGrid      g,
     inside += 1.0;
     int idx[D];
     IndexOf<D>(g, p, idx);
+    // The CPU path reads W from its field image, u = Direction w rounded to float per component
+    // (FEMRegistrationMethod::WriteGridFieldToImage): the same floats here, and the CPU's formulas below, so that both
+    // back-ends compute the same force for the same w, bit for bit (a difference in the last bits can flip a near-tie
+    // of the greedy contraction and lead the two runs apart).
     double u[D];
-    for (int k = 0; k < D; ++k)
-    {
-      u[k] = w[p * D + k];
-    }
-    // warped moving gradient: Jt[j][k] = delta_jk + d w_k / d x_j (per mm; central differences, one-sided at the
-    // border), as dmr::WarpJacobianTranspose on the CPU
+    PhysicalFloats<D>(levels.direction, w + p * D, u);
+    // warped moving gradient: Jt[j][k] = delta_jk + d u_k / d x_j in the grid frame (per mm; central differences,
+    // one-sided at the border), as dmr::WarpJacobianTranspose on the CPU
     double Jt[D][D];
     for (int j = 0; j < D; ++j)
     {
@@ -239,9 +258,17 @@ ForceKernel(DeviceGrid      g,
           continue;
         }
         const double h = static_cast<double>((hi - lo) / g.stride[j]) * g.spacing[j];
+        double       uhi[D], ulo[D];
+        PhysicalFloats<D>(levels.direction, w + hi * D, uhi);
+        PhysicalFloats<D>(levels.direction, w + lo * D, ulo);
         for (int k = 0; k < D; ++k)
         {
-          Jt[j][k] += (static_cast<double>(w[hi * D + k]) - static_cast<double>(w[lo * D + k])) / h;
+          double du = 0.0;
+          for (int m = 0; m < D; ++m)
+          {
+            du += levels.direction[m][k] * (uhi[m] - ulo[m]);
+          }
+          Jt[j][k] += du / h;
         }
       }
     }
@@ -257,7 +284,7 @@ ForceKernel(DeviceGrid      g,
         for (int k = 0; k < D; ++k)
         {
           cf[r] += L.FA[r][k] * static_cast<double>(idx[k]);
-          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MG[r][k] * u[k];
+          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
         }
       }
       double t = 0.0, s = 0.0, gr[D] = {};
@@ -1685,6 +1712,13 @@ RegistrationContext::Initialize(unsigned int                          dimension,
     m.levelGradient.resize(levels.size());
     m.levels = DeviceLevels{};
     m.levels.count = static_cast<int>(levels.size());
+    for (int r = 0; r < 3; ++r)
+    {
+      for (int k = 0; k < 3; ++k)
+      {
+        m.levels.direction[r][k] = levels.empty() ? (r == k ? 1.0 : 0.0) : levels[0].direction[r][k];
+      }
+    }
     for (size_t l = 0; l < levels.size(); ++l)
     {
       const PyramidLevelView & v = levels[l];
@@ -1708,7 +1742,7 @@ RegistrationContext::Initialize(unsigned int                          dimension,
         {
           L.FA[k][j] = v.FA[k][j];
           L.MA[k][j] = v.MA[k][j];
-          L.MG[k][j] = v.MG[k][j];
+          L.MB[k][j] = v.MB[k][j];
         }
       }
       L.weight = v.weight;

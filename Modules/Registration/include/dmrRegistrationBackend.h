@@ -58,10 +58,12 @@ struct PyramidLevelView
   double        R[3][3]{};  // moving grid frame -> fixed grid frame (DensityFieldFilter::PyramidLevel)
   double        FA[3][3]{}; // fixed-level continuous index = FA fineIndex + Fc
   double        Fc[3]{};
-  double        MA[3][3]{}; // moving-level continuous index = MA fineIndex + Mc + MG w
+  double        MA[3][3]{}; // moving-level continuous index = MA fineIndex + Mc + MB u, u = float(Direction w)
   double        Mc[3]{};
-  double        MG[3][3]{};    // per mm of the grid-frame displacement w
-  double        weight{ 1.0 }; // MSSD weight of the level (paper Eq. 3)
+  double        MB[3][3]{};        // per mm of the physical-frame displacement u (DensityFieldFilter::PyramidLevel)
+  double        direction[3][3]{}; // the fixed image's direction (every level the same): u = Direction w, rounded to
+                                   // float per component as the CPU path's field image holds it
+  double weight{ 1.0 };            // MSSD weight of the level (paper Eq. 3)
 };
 
 /** Sums of one force evaluation (paper Eq. 3 and 5), before the pixel volume factor. */

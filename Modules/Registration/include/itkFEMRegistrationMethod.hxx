@@ -720,8 +720,9 @@ ThrowOnError(const cuda::Status & status, const char * stage)
 }
 
 /** The device's view of the pyramid (DensityFieldFilter::PyramidLevel, complete or not): sizes, maps, MSSD weights,
- * and the moving-level index per mm of the grid-frame displacement (MB maps a physical displacement, u_phys =
- * Direction w). */
+ * the moving-level index per mm of the physical displacement (MB) and the fixed direction: the device evaluates the
+ * force at u = float(Direction w), the floats of the CPU path's field image, with the CPU's formulas, so both back-ends
+ * compute the same force for the same w, bit for bit. */
 template <unsigned int D, typename TLevel, typename TDirection>
 std::vector<cuda::PyramidLevelView>
 PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedDirection, size_t numberOfPixels)
@@ -741,12 +742,8 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
       {
         v.FA[r][k] = L.FA[r][k];
         v.MA[r][k] = L.MA[r][k];
-        double mg = 0.0;
-        for (unsigned int j = 0; j < D; ++j)
-        {
-          mg += L.MB[r][j] * fixedDirection[j][k];
-        }
-        v.MG[r][k] = mg;
+        v.MB[r][k] = L.MB[r][k];
+        v.direction[r][k] = fixedDirection[r][k];
       }
     }
     // an incomplete pyramid (DensityFieldFilter::GetPyramid(false)): the device builds what is not here from the plans
