@@ -29,6 +29,7 @@
 #include "itkGDCMSeriesFileNames.h"
 #include "itkImageIOFactory.h"
 #include "dmrMeshFileIO.h"
+#include "dmrInitialTransform.h"
 #include "dmrLandmarks.h"
 #include "dmrReadImage.h"
 #include "dmrToolErrors.h"
@@ -100,7 +101,7 @@ struct Options
   std::string forceGradient{ "warped" };
   long        stepHalvings{ 5 };
   long        deviceSolveMinDofs{ 300 };
-  std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement;
+  std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
   bool        landmarksInMM{ false };
   bool        window{ false };
   double      windowLow{ 0.0 }, windowHigh{ 0.0 };
@@ -130,6 +131,10 @@ const char * const Usage =
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
   "                         unknowns, on the CPU otherwise (default 300; 0: always on the GPU)\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
+  "  --initial-transform FILE  start from this transformation (e.g. an affine pre-alignment): an ITK transform file\n"
+  "                         (.tfm, .txt, .mat, .h5: ITK, ANTs, elastix's ITK export) or a displacement field image\n"
+  "                         (mm, moving point = fixed point + u, LPS); the outputs hold it composed with the\n"
+  "                         registration's part\n"
   "  --fixed-mask FILE      region of interest on the fixed image (non-zero = inside, e.g. the lungs): forces,\n"
   "                         density and SSD only inside it; resampled (nearest) onto the fixed grid if needed\n"
   "  --intensity-window LO,HI  register the images clamped to [LO, HI] and scaled to [0, 1] (e.g. -1000,200 for\n"
@@ -202,7 +207,8 @@ RefuseOutputsOverInputs(const Options & opt)
                                                               { "--fixed-mask", opt.fixedMask },
                                                               { "--fixed-landmarks", opt.fixedLandmarks },
                                                               { "--moving-landmarks", opt.movingLandmarks },
-                                                              { "--truth-displacement", opt.truthDisplacement } };
+                                                              { "--truth-displacement", opt.truthDisplacement },
+                                                              { "--initial-transform", opt.initialTransform } };
   if (opt.mesh != "dynamic" && opt.mesh != "regular")
   {
     inputs.emplace_back("--mesh", opt.mesh);
@@ -326,6 +332,8 @@ ParseArguments(int argc, char * argv[])
       opt.movingLandmarks = v;
     else if (a == "--truth-displacement")
       opt.truthDisplacement = v;
+    else if (a == "--initial-transform")
+      opt.initialTransform = v;
     else if (a == "--intensity-window")
     {
       const auto comma = v.find(',');
@@ -396,7 +404,8 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--intensity-window: HI must be greater than LO");
   if (opt.fixedLandmarks.empty() != opt.movingLandmarks.empty())
     throw UsageError("--fixed-landmarks and --moving-landmarks go together");
-  for (const std::string * f : { &opt.fixedMask, &opt.fixedLandmarks, &opt.movingLandmarks, &opt.truthDisplacement })
+  for (const std::string * f :
+       { &opt.fixedMask, &opt.fixedLandmarks, &opt.movingLandmarks, &opt.truthDisplacement, &opt.initialTransform })
   {
     if (!f->empty() && !itksys::SystemTools::FileExists(*f, true))
       throw UsageError("no such file: " + *f);
@@ -574,9 +583,11 @@ WriteMeshVTU(const TMesh * mesh, const std::string & path)
 /** Share of the reference image's pixels whose physical point lies inside the image's buffer, where ResampleOnto
  * interpolates it (outside, it gets the default value): estimated on a grid of at most 64 points per axis; when none
  * of those is inside, counted over every pixel, so 0 means that none is inside. */
-template <typename TImage, typename TReference>
+template <typename TImage,
+          typename TReference,
+          typename TField = itk::Image<itk::Vector<float, TReference::ImageDimension>, TReference::ImageDimension>>
 double
-CoveredFraction(const TImage * image, const TReference * reference)
+CoveredFraction(const TImage * image, const TReference * reference, const TField * through = nullptr)
 {
   auto interpolator = itk::LinearInterpolateImageFunction<TImage, double>::New();
   interpolator->SetInputImage(image);
@@ -602,6 +613,10 @@ CoveredFraction(const TImage * image, const TReference * reference)
       }
       typename TReference::PointType point;
       reference->TransformIndexToPhysicalPoint(index, point);
+      if (through)
+      {
+        point += through->GetPixel(index);
+      }
       inside += interpolator->IsInsideBuffer(point) ? 1 : 0;
     }
     return static_cast<double>(inside) / static_cast<double>(total);
@@ -726,6 +741,25 @@ Run(const Options & opt)
                        ") at voxel " + index + ": replace NaN and infinite values first");
     }
   }
+  // --initial-transform: W_0 as a displacement field on the fixed grid (a transform file is evaluated there)
+  typename FieldType::Pointer initialField;
+  std::string                 initialKind;
+  if (!opt.initialTransform.empty())
+  {
+    try
+    {
+      initialField = dmrtools::InitialFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer(), initialKind);
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      throw UsageError("--initial-transform: " + std::string(e.GetDescription()));
+    }
+    catch (const UsageError & e)
+    {
+      throw UsageError("--initial-transform: " + std::string(e.what()));
+    }
+  }
+  dmrtools::ThrowIfInterrupted();
   typename ImageType::Pointer movingInput = moving; // as read: warped.nii.gz samples it (original intensities)
   std::pair<double, double>   fixedRangeAsRead, movingRangeAsRead; // for the message when a window leaves nothing
   if (opt.window)
@@ -755,8 +789,18 @@ Run(const Options & opt)
       image->Modified();
     }
   }
-  const bool   movingResampled = !dmrtools::SameGrid<D>(fixed.GetPointer(), moving.GetPointer());
-  const double movingOverlap = movingResampled ? CoveredFraction(moving.GetPointer(), fixed.GetPointer()) : 1.0;
+  // With an initial transformation the moving image stays on its own grid (the registration samples it through
+  // physical space at W_0(x), which may lie beyond the fixed image's box); without one, it is resampled onto the
+  // fixed grid when it lies on another.
+  const bool   movingResampled = !initialField && !dmrtools::SameGrid<D>(fixed.GetPointer(), moving.GetPointer());
+  const double movingOverlap = initialField
+                                 ? CoveredFraction(moving.GetPointer(), fixed.GetPointer(), initialField.GetPointer())
+                                 : (movingResampled ? CoveredFraction(moving.GetPointer(), fixed.GetPointer()) : 1.0);
+  if (movingOverlap == 0.0 && initialField)
+  {
+    throw UsageError("--initial-transform maps no voxel of the fixed image into the moving image: check it (its "
+                     "direction: fixed to moving, in ITK's LPS frame) and the images' origins and directions");
+  }
   if (movingOverlap == 0.0)
   {
     throw UsageError("the moving image does not overlap the fixed image in physical space: check their origins and "
@@ -909,6 +953,7 @@ Run(const Options & opt)
   {
     method->SetFixedMask(mask);
   }
+  method->SetInitialDisplacementField(initialField);
   method->SetNumberOfNodes(static_cast<itk::SizeValueType>(nodes));
   method->SetNumberOfIterations(static_cast<unsigned int>(opt.iterations));
   method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));
@@ -1143,8 +1188,17 @@ Run(const Options & opt)
     {
       evaluation += "  \"tre_initial_mm\": " +
                     statisticsJson(dmrtools::InitialTargetRegistrationError<D>(landmarks.fixed, landmarks.moving)) +
-                    ",\n  \"tre_mm\": " +
-                    statisticsJson(dmrtools::TargetRegistrationError(landmarks.fixed, landmarks.moving, field)) + ",\n";
+                    ",\n";
+      if (initialField)
+      {
+        evaluation += "  \"tre_initial_transform_mm\": " +
+                      statisticsJson(dmrtools::TargetRegistrationError(
+                        landmarks.fixed, landmarks.moving, initialField.GetPointer())) +
+                      ",\n";
+      }
+      evaluation +=
+        "  \"tre_mm\": " + statisticsJson(dmrtools::TargetRegistrationError(landmarks.fixed, landmarks.moving, field)) +
+        ",\n";
     }
     catch (const itk::ExceptionObject & e)
     {
@@ -1154,8 +1208,15 @@ Run(const Options & opt)
   if (truth)
   {
     evaluation += "  \"dense_error_initial_mm\": " +
-                  statisticsJson(dmrtools::DisplacementMagnitudeInMask(truth.GetPointer(), mask.GetPointer())) +
-                  ",\n  \"dense_error_mm\": " +
+                  statisticsJson(dmrtools::DisplacementMagnitudeInMask(truth.GetPointer(), mask.GetPointer())) + ",\n";
+    if (initialField)
+    {
+      evaluation += "  \"dense_error_initial_transform_mm\": " +
+                    statisticsJson(dmrtools::DisplacementErrorInMask(
+                      initialField.GetPointer(), truth.GetPointer(), mask.GetPointer())) +
+                    ",\n";
+    }
+    evaluation += "  \"dense_error_mm\": " +
                   statisticsJson(dmrtools::DisplacementErrorInMask(field, truth.GetPointer(), mask.GetPointer())) +
                   ",\n";
   }
@@ -1217,7 +1278,12 @@ Run(const Options & opt)
        << "  \"mssd_final\": " << method->GetFinalMSSD() << ",\n"
        << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
-       << evaluation << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
+       << evaluation << "  \"initial_transform\": "
+       << (initialField ? "{\"file\": \"" + dmrtools::JsonEscape(opt.initialTransform) + "\", \"kind\": \"" +
+                            dmrtools::JsonEscape(initialKind) + "\"}"
+                        : std::string("null"))
+       << ",\n"
+       << "  \"moving_resampled\": " << (movingResampled ? "true" : "false") << ",\n"
        << "  \"moving_overlap\": " << movingOverlap << ",\n"
        << "  \"fixed_mask\": " << (opt.fixedMask.empty() ? "null" : "\"" + dmrtools::JsonEscape(opt.fixedMask) + "\"")
        << ",\n"

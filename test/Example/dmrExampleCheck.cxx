@@ -20,6 +20,7 @@
 //                                          direction (any pixel type, any number of components)
 //   dmrExampleCheck components A N         exit 0 iff every pixel of A has N components
 //   dmrExampleCheck min-above A T          exit 0 iff every pixel (every component) of A is > T
+//   dmrExampleCheck border-equals A V1,V2[,V3]  exit 0 iff every pixel on A's border equals (V1, V2[, V3])
 //   dmrExampleCheck make-3d OUT [SHIFT]    writes a 16x12x10 float image with a gradient and a bright cube (moved by
 //                                          SHIFT voxels along x)
 //   dmrExampleCheck make-3d-mask OUT [V]   writes a mask of the inner part of that image on a coarser grid (spacing 2),
@@ -34,6 +35,7 @@
 #include "itkImageFileWriter.h"
 #include "itkImageIOFactory.h"
 #include "itkImageRegionConstIterator.h"
+#include "itkImageRegionConstIteratorWithIndex.h"
 #include "itkImageRegionIteratorWithIndex.h"
 
 #include <algorithm>
@@ -43,6 +45,7 @@
 #include <limits>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 namespace
 {
@@ -142,6 +145,51 @@ Components(const std::string & path, unsigned int expected)
     return EXIT_FAILURE;
   }
   std::cout << path << ": " << n << " components per pixel\n";
+  return EXIT_SUCCESS;
+}
+
+/** Every pixel on the border of A (index 0 or last along some axis) equals the given components, to 1e-4 of their
+ * size (at least 1e-4). */
+template <unsigned int D>
+int
+BorderEquals(const std::string & path, const std::vector<double> & expected)
+{
+  const auto image = Read<D>(path);
+  if (image->GetNumberOfComponentsPerPixel() != expected.size())
+  {
+    std::cerr << path << " has " << image->GetNumberOfComponentsPerPixel() << " components, " << expected.size()
+              << " values given\n";
+    return EXIT_FAILURE;
+  }
+  const auto region = image->GetLargestPossibleRegion();
+  double     worst = 0.0;
+  size_t     border = 0;
+  for (itk::ImageRegionConstIteratorWithIndex<itk::VectorImage<double, D>> it(image, region); !it.IsAtEnd(); ++it)
+  {
+    bool onBorder = false;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      onBorder = onBorder || it.GetIndex()[k] == region.GetIndex(k) || it.GetIndex()[k] == region.GetUpperIndex()[k];
+    }
+    if (!onBorder)
+    {
+      continue;
+    }
+    ++border;
+    const auto v = it.Get();
+    for (unsigned int c = 0; c < expected.size(); ++c)
+    {
+      const double error = std::abs(v[c] - expected[c]) / std::max(1.0, std::abs(expected[c]));
+      worst = std::isfinite(error) ? std::max(worst, error) : std::numeric_limits<double>::infinity();
+    }
+  }
+  if (!(worst <= 1e-4))
+  {
+    std::cerr << path << ": a border pixel differs from the expected value by " << worst << " (relative)\n";
+    return EXIT_FAILURE;
+  }
+  std::cout << path << ": all " << border << " border pixels equal the expected value (largest relative difference "
+            << worst << ")\n";
   return EXIT_SUCCESS;
 }
 
@@ -289,7 +337,8 @@ MakeNonFinite(const std::string & path)
 int
 Usage()
 {
-  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | make-3d OUT [SHIFT] | "
+  std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | border-equals A V1,V2[,V3] | "
+               "make-3d OUT [SHIFT] | "
                "make-3d-thin OUT | make-3d-mask OUT [VALUE] | "
                "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
                "make-constant OUT\n";
@@ -352,6 +401,27 @@ main(int argc, char * argv[])
         return SameGrid<2>(argv[2], argv[3]);
       if (d == 3)
         return SameGrid<3>(argv[2], argv[3]);
+    }
+    else if (mode == "border-equals")
+    {
+      std::vector<double> values;
+      std::string         list = argv[3];
+      for (size_t start = 0; start <= list.size();)
+      {
+        const size_t comma = std::min(list.find(',', start), list.size());
+        const auto   item = list.substr(start, comma - start);
+        char *       end = nullptr;
+        values.push_back(std::strtod(item.c_str(), &end));
+        if (item.empty() || *end != '\0')
+        {
+          return Usage();
+        }
+        start = comma + 1;
+      }
+      if (d == 2)
+        return BorderEquals<2>(argv[2], values);
+      if (d == 3)
+        return BorderEquals<3>(argv[2], values);
     }
     else if (mode == "components" || mode == "min-above")
     {

@@ -283,6 +283,38 @@ run-regular)
   check_run_outputs "$out" 5 regular 30
   check "--report in the new output directory is written" cmp "$out/summary.json" "$out/report.json"
   ;;
+run-initial-transform)
+  # a translation as ITK's text transform file: the run starts from it, the report names it, and the border of the
+  # displacement (where the mesh's nodes are fixed) keeps it exactly
+  printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_2_2\nParameters: 4 -3\nFixedParameters:\n' \
+    >"$W/translation.tfm"
+  out="$W/out"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \
+    --nodes 30 --iterations 5 --threads 2 --initial-transform "$W/translation.tfm"
+  cat "$W/stdout" "$W/stderr"
+  check "registration exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$out" 5 dynamic 30
+  check "report: initial_transform names the file and its kind" \
+    grep -q '"initial_transform": {"file": "[^"]*translation.tfm", "kind": "transform TranslationTransform_double_2_2"}' \
+    "$out/report.json"
+  check "the displacement's border is the translation" "$CHECK" border-equals "$out/displacement.nii.gz" 4,-3
+  ;;
+bad-initial-transform)
+  printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_3_3\nParameters: 4 -3 1\nFixedParameters:\n' \
+    >"$W/translation3d.tfm"
+  printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_2_2\nParameters: 4\nFixedParameters:\n' \
+    >"$W/short.tfm"
+  printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_2_2\nParameters: 4000 0\nFixedParameters:\n' \
+    >"$W/far.tfm"
+  rm -f "$W/stdout" "$W/stderr" # (expect_bad_input compares the directory's listing)
+  A=(--fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2)
+  expect_bad_input initial-3d-transform "${A[@]}" --initial-transform "$W/translation3d.tfm"
+  expect_bad_input initial-short-parameters "${A[@]}" --initial-transform "$W/short.tfm"
+  expect_bad_input initial-maps-outside "${A[@]}" --initial-transform "$W/far.tfm"
+  expect_bad_input initial-missing "${A[@]}" --initial-transform "$W/none.tfm"
+  expect_bad_input initial-scalar-image "${A[@]}" --initial-transform "$DATA/fixed.nii.gz"
+  ;;
 run-fidelity)
   out="$W/out"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" \

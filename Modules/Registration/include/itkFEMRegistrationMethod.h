@@ -142,6 +142,13 @@ public:
   using MaskImageType = typename DensityFilterType::MaskImageType;
   itkSetInputMacro(FixedMask, MaskImageType);
   itkGetInputMacro(FixedMask, MaskImageType);
+  /** Optional transformation the registration starts from, W_0(x) = x + u_0(x): a displacement field on the fixed
+   * image's grid, physical frame, mm, ITK convention (moving point = fixed point + u_0), e.g. an affine pre-alignment
+   * made into a field by TransformToDisplacementFieldFilter. Every iteration composes onto it (W <- W o exp(u)), so
+   * the outputs (displacement field, transform) hold W_0 and the registration's part together, and the first
+   * iteration's force, SSD and beta are those at W_0. Without it W_0 is the identity. */
+  itkSetInputMacro(InitialDisplacementField, DisplacementFieldType);
+  itkGetInputMacro(InitialDisplacementField, DisplacementFieldType);
 
   itkSetClampMacro(NumberOfIterations, unsigned int, 1, NumericTraits<unsigned int>::max());
   itkGetConstMacro(NumberOfIterations, unsigned int);
@@ -298,6 +305,9 @@ protected:
 private:
   void
   WriteGridFieldToImage(const std::vector<float> & grid, DisplacementFieldType * image) const;
+  /** The initial displacement field in the fixed grid frame (n x D floats), for w at the start. */
+  void
+  InitialGridField(std::vector<float> & w) const;
   void
   MakeTransformOutput();
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */

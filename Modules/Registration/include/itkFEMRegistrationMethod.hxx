@@ -28,6 +28,7 @@
 #include "dmrDualMeshBuilder.h"
 #include "dmrImageMetrics.h"
 #include <chrono>
+#include <cmath>
 #include <future>
 #include <sstream>
 #include <string>
@@ -42,6 +43,7 @@ FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
   this->AddRequiredInputName("MovingImage");
   this->AddOptionalInputName("StaticMesh");
   this->AddOptionalInputName("FixedMask");
+  this->AddOptionalInputName("InitialDisplacementField");
   this->SetNumberOfRequiredOutputs(2);
   this->SetNthOutput(0, this->MakeOutput(0));
   this->SetNthOutput(1, this->MakeOutput(1));
@@ -217,6 +219,19 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
       itkExceptionMacro("the fixed mask must lie on the fixed image grid: " << why);
     }
   }
+  // the initial field is read pixel for pixel with the fixed image too: W_0 at the fixed pixels
+  if (const DisplacementFieldType * initial = this->GetInitialDisplacementField())
+  {
+    const std::string why =
+      dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
+                                        initial,
+                                        ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
+                                        ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance());
+    if (!why.empty())
+    {
+      itkExceptionMacro("the initial displacement field must lie on the fixed image grid: " << why);
+    }
+  }
 }
 
 template <typename TF, typename TM, typename TD>
@@ -287,6 +302,21 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   };
   requireFinite("fixed", fixed);
   requireFinite("moving", moving);
+  if (const DisplacementFieldType * initial = this->GetInitialDisplacementField())
+  {
+    const auto * u0 = initial->GetBufferPointer();
+    for (SizeValueType p = 0, n = initial->GetBufferedRegion().GetNumberOfPixels(); p < n; ++p)
+    {
+      for (unsigned int k = 0; k < ImageDimension; ++k)
+      {
+        if (!std::isfinite(static_cast<double>(u0[p][k])))
+        {
+          itkExceptionMacro("the initial displacement field has a non-finite value ("
+                            << u0[p][k] << ") at index " << initial->ComputeIndex(static_cast<OffsetValueType>(p)));
+        }
+      }
+    }
+  }
   for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
   {
     if (!(range.second > range.first))
@@ -317,6 +347,11 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   std::vector<float>      w(n * D, 0.0f), update(n * D), expUpdate(n * D);
   DisplacementFieldType * field = this->GetDisplacementField();
   this->ConfigureStages();
+  if (this->GetInitialDisplacementField())
+  {
+    this->InitialGridField(w);
+    this->WriteGridFieldToImage(w, field); // the density filter reads W from the field image
+  }
   dmr::BarycentricMap<D> bary;
   std::vector<double>    nodalForce, nodalU, nodalW;
 
@@ -834,6 +869,32 @@ FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & c
 
 template <typename TF, typename TM, typename TD>
 void
+FEMRegistrationMethod<TF, TM, TD>::InitialGridField(std::vector<float> & w) const
+{
+  // w = Direction^T u_0: the grid frame of the fixed image (the inverse of WriteGridFieldToImage's rotation)
+  const auto &                  dir = this->GetFixedImage()->GetDirection();
+  const DisplacementFieldType * initial = this->GetInitialDisplacementField();
+  const auto *                  u0 = initial->GetBufferPointer();
+  const size_t                  n = initial->GetBufferedRegion().GetNumberOfPixels();
+  w.resize(n * ImageDimension);
+  dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      for (unsigned int k = 0; k < ImageDimension; ++k)
+      {
+        double v = 0.0;
+        for (unsigned int r = 0; r < ImageDimension; ++r)
+        {
+          v += dir[r][k] * static_cast<double>(u0[p][r]);
+        }
+        w[p * ImageDimension + k] = static_cast<float>(v);
+      }
+    }
+  });
+}
+
+template <typename TF, typename TM, typename TD>
+void
 FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::time_point tStart)
 {
   constexpr unsigned int D = ImageDimension;
@@ -872,6 +933,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
     "initialisation");
   std::vector<uint8_t>().swap(mask);
+  if (this->GetInitialDisplacementField())
+  {
+    std::vector<float> w0(n * D);
+    this->InitialGridField(w0);
+    dmr::ThrowOnError(context.UploadField(w0.data()), "initial field upload");
+  }
   m_Timing.registration += seconds(t0, Clock::now());
 
   std::vector<double> nodalForce, nodalU, nodalW;
