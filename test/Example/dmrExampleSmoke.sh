@@ -299,6 +299,16 @@ run-initial-transform)
     grep -q '"initial_transform": {"file": "[^"]*translation.tfm", "kind": "transform TranslationTransform_double_2_2"}' \
     "$out/report.json"
   check "the displacement's border is the translation" "$CHECK" border-equals "$out/displacement.nii.gz" 4,-3
+  # an earlier run's displacement as the start of another: it goes on where the first one ended
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/again" \
+    --nodes 30 --iterations 3 --threads 2 --initial-transform "$out/displacement.nii.gz"
+  check "a run from the first run's displacement exits 0" test "$RC" = 0
+  first_final=$(json_number "$out/report.json" ssd_final)
+  second_initial=$(json_number "$W/again/report.json" ssd_initial)
+  check "it starts at the SSD the first run ended with ($first_final vs $second_initial)" \
+    awk_true "$first_final > 0 && ($second_initial - $first_final)^2 <= (1e-6 * $first_final)^2"
+  check "report: the kind is a displacement field" \
+    grep -q '"kind": "displacement field"' "$W/again/report.json"
   ;;
 bad-initial-transform)
   printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_3_3\nParameters: 4 -3 1\nFixedParameters:\n' \
