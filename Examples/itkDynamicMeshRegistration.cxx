@@ -808,11 +808,20 @@ Run(const Options & opt)
   }
   if (movingOverlap < 0.5)
   {
-    std::cout << "note: the moving image covers only "
-              << (movingOverlap < 0.01 ? std::string("less than 1")
-                                       : std::to_string(std::lround(100.0 * movingOverlap)))
-              << " % of the fixed image in physical space (outside it, it counts as its lowest intensity): check "
-                 "their origins and directions if that is not intended\n";
+    const std::string share =
+      movingOverlap < 0.01 ? std::string("less than 1") : std::to_string(std::lround(100.0 * movingOverlap));
+    if (initialField)
+    {
+      std::cout << "note: --initial-transform maps only " << share
+                << " % of the fixed image into the moving image (beyond its border the moving image takes its "
+                   "nearest border value): check the transform if that is not intended\n";
+    }
+    else
+    {
+      std::cout << "note: the moving image covers only " << share
+                << " % of the fixed image in physical space (outside it, it counts as its lowest intensity): check "
+                   "their origins and directions if that is not intended\n";
+    }
   }
   if (movingResampled)
   {
