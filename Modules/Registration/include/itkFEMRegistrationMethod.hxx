@@ -206,30 +206,22 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
   {
     this->CheckStaticMeshHasAFreeNode(dmr::FromItkMesh<ImageDimension>(staticMesh, this->GetFixedImage()));
   }
-  // the mask is read pixel for pixel with the fixed image (the moving image may lie on any grid)
-  if (const MaskImageType * mask = this->GetFixedMask())
+  // the mask and the initial field are read pixel for pixel with the fixed image (the moving image may lie on any
+  // grid)
+  for (const auto & [image, name] :
+       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedMask()), "the fixed mask"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetInitialDisplacementField()),
+                        "the initial displacement field") })
   {
     const std::string why =
-      dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
-                                        mask,
-                                        ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
-                                        ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance());
+      image ? dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
+                                                image,
+                                                ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
+                                                ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance())
+            : std::string();
     if (!why.empty())
     {
-      itkExceptionMacro("the fixed mask must lie on the fixed image grid: " << why);
-    }
-  }
-  // the initial field is read pixel for pixel with the fixed image too: W_0 at the fixed pixels
-  if (const DisplacementFieldType * initial = this->GetInitialDisplacementField())
-  {
-    const std::string why =
-      dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
-                                        initial,
-                                        ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
-                                        ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance());
-    if (!why.empty())
-    {
-      itkExceptionMacro("the initial displacement field must lie on the fixed image grid: " << why);
+      itkExceptionMacro(<< name << " must lie on the fixed image grid: " << why);
     }
   }
 }
