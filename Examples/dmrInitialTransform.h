@@ -132,6 +132,15 @@ ReadTransformFile(const std::string & path)
   }
   catch (const itk::ExceptionObject & e)
   {
+    // elastix writes its own parameter format ("(Transform ...)" lines) into .txt files, which ITK cannot read
+    std::ifstream in(path);
+    std::string   word;
+    if (in >> word && word.front() == '(')
+    {
+      itkGenericExceptionMacro(<< path
+                               << " is an elastix transform parameter file, which ITK cannot read: give the "
+                                  "deformation field transformix writes (transformix -def all) instead");
+    }
     itkGenericExceptionMacro(<< "cannot read a transform from " << path << ": " << e.GetDescription());
   }
   const auto &      list = *reader->GetTransformList();

@@ -273,6 +273,9 @@ TEST(InitialTransform, BadFilesAreRefusedWithTheReason)
     garbage << "not a transform\n";
   }
   EXPECT_TRUE(RefusedMentioning(Path("garbage.tfm"), "garbage.tfm"));
+  std::ofstream(Path("TransformParameters.0.txt"))
+    << "(Transform \"AffineTransform\")\n(NumberOfParameters 6)\n(TransformParameters 1 0 0 1 2 3)\n";
+  EXPECT_TRUE(RefusedMentioning(Path("TransformParameters.0.txt"), "elastix transform parameter file"));
   EXPECT_TRUE(RefusedMentioning(Path("missing.tfm"), "no such file"));
 
   // ITK's text reader alone took these without a word (another translation than the file says)
