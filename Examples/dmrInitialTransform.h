@@ -26,6 +26,7 @@
 #include "itkImage.h"
 #include "itkNearestNeighborExtrapolateImageFunction.h"
 #include "itkResampleImageFilter.h"
+#include "itkTransformFactoryBase.h"
 #include "itkTransformFileReader.h"
 #include "itkTransformToDisplacementFieldFilter.h"
 #include "itkVector.h"
@@ -51,67 +52,115 @@ IsTransformFileName(const std::string & path)
          extension == ".hdf5";
 }
 
-/** ITK's text transform reader takes what it can parse of a "Parameters:" line and leaves the rest as it was: a line
- * that is short, or holds "NaN" or a typo, gave another transform without a word (and a short line leaves parameters
- * unset). Checks every "Parameters:" and "FixedParameters:" line of the file against the transforms read (in file
- * order): each value a finite number, as many as the transform has. */
-inline void
-CheckTextTransformParameters(const std::string &                                                 path,
-                             const itk::TransformFileReaderTemplate<double>::TransformListType & list)
+/** The values of a "Parameters:" or "FixedParameters:" line; throws when one is not a finite number. */
+inline std::vector<double>
+TransformFileValues(const std::string & path, const std::string & line, long index, bool fixed)
 {
-  // the file's blocks: a composite transform's block, then those of its parts (the reader moved them into it)
-  std::vector<const itk::TransformBaseTemplate<double> *> blocks;
-  for (const auto & transform : list)
+  std::istringstream  tokens(line.substr(line.find(':') + 1));
+  std::string         token;
+  std::vector<double> values;
+  while (tokens >> token)
   {
-    blocks.push_back(transform.GetPointer());
-    auto addParts = [&blocks](const auto * composite) {
-      for (size_t i = 0; composite && i < composite->GetNumberOfTransforms(); ++i)
-      {
-        blocks.push_back(composite->GetNthTransformConstPointer(i));
-      }
-    };
-    addParts(dynamic_cast<const itk::CompositeTransform<double, 2> *>(transform.GetPointer()));
-    addParts(dynamic_cast<const itk::CompositeTransform<double, 3> *>(transform.GetPointer()));
+    char *       end = nullptr;
+    const double value = std::strtod(token.c_str(), &end);
+    if (*end != '\0' || !std::isfinite(value))
+    {
+      itkGenericExceptionMacro(<< path << ": \"" << token << "\" in the " << (fixed ? "fixed " : "")
+                               << "parameters of transform " << index << " is not a finite number");
+    }
+    values.push_back(value);
   }
+  return values;
+}
+
+/** ITK 5.2's text transform reader takes what it can parse of a "Parameters:" line and hands that array to the
+ * transform, which reads as many values as it has parameters: a short line, or one cut short by "NaN" or a typo, read
+ * past the end of the array (AddressSanitizer: heap-buffer-overflow in TranslationTransform::SetParameters) and gave
+ * another transform without a word. So the file is checked before ITK reads it: every transform block names a known
+ * transform and (except a composite's, which has none) has a "Parameters:" and a "FixedParameters:" line of finite
+ * numbers, as many as that transform takes (the fixed ones first: they set the size of, e.g., a B-spline's grid). */
+inline void
+CheckTextTransformFile(const std::string & path)
+{
+  itk::TransformFactoryBase::RegisterDefaultTransforms();
   std::ifstream in(path);
-  std::string   line;
-  long          index = -1; // the transform of the current block
+  if (!in)
+  {
+    itkGenericExceptionMacro(<< "cannot open " << path);
+  }
+  struct Block
+  {
+    std::string name, parameters, fixedParameters;
+    bool        hasParameters{ false }, hasFixedParameters{ false };
+  };
+  std::vector<Block> blocks;
+  std::string        line;
   while (std::getline(in, line))
   {
+    if (!line.empty() && line.back() == '\r')
+    {
+      line.pop_back();
+    }
     if (line.rfind("Transform:", 0) == 0)
     {
-      ++index;
-      continue;
+      const auto first = line.find_first_not_of(" \t", 10);
+      const auto last = line.find_last_not_of(" \t");
+      blocks.emplace_back();
+      blocks.back().name = first == std::string::npos ? std::string() : line.substr(first, last - first + 1);
     }
-    const bool fixed = line.rfind("FixedParameters:", 0) == 0;
-    if (!fixed && line.rfind("Parameters:", 0) != 0)
+    else if (line.rfind("Parameters:", 0) == 0 || line.rfind("FixedParameters:", 0) == 0)
     {
-      continue;
-    }
-    if (index < 0 || static_cast<size_t>(index) >= blocks.size())
-    {
-      itkGenericExceptionMacro(<< path << ": parameters outside a transform block");
-    }
-    std::istringstream tokens(line.substr(line.find(':') + 1));
-    std::string        token;
-    size_t             count = 0;
-    while (tokens >> token)
-    {
-      char *       end = nullptr;
-      const double value = std::strtod(token.c_str(), &end);
-      if (*end != '\0' || !std::isfinite(value))
+      if (blocks.empty())
       {
-        itkGenericExceptionMacro(<< path << ": \"" << token << "\" in the " << (fixed ? "fixed " : "")
-                                 << "parameters of transform " << index << " is not a finite number");
+        itkGenericExceptionMacro(<< path << ": parameters before the first \"Transform:\" line");
       }
-      ++count;
+      const bool fixed = line[0] == 'F';
+      (fixed ? blocks.back().fixedParameters : blocks.back().parameters) = line;
+      (fixed ? blocks.back().hasFixedParameters : blocks.back().hasParameters) = true;
     }
-    const auto * transform = blocks[static_cast<size_t>(index)];
-    const size_t expected = fixed ? transform->GetFixedParameters().size() : transform->GetNumberOfParameters();
-    if (count != expected)
+  }
+  for (size_t i = 0; i < blocks.size(); ++i)
+  {
+    const Block & block = blocks[i];
+    const long    index = static_cast<long>(i);
+    std::string   name = block.name; // the reader reads a float transform as its double twin
+    for (auto at = name.find("_float_"); at != std::string::npos; at = name.find("_float_"))
     {
-      itkGenericExceptionMacro(<< path << ": transform " << index << " (" << transform->GetTransformTypeAsString()
-                               << ") has " << count << (fixed ? " fixed" : "") << " parameters, it takes " << expected);
+      name.replace(at, 7, "_double_");
+    }
+    itk::LightObject::Pointer object = itk::ObjectFactoryBase::CreateInstance(name.c_str());
+    auto *                    transform = dynamic_cast<itk::TransformBaseTemplate<double> *>(object.GetPointer());
+    if (!transform)
+    {
+      itkGenericExceptionMacro(<< path << ": transform " << index << " is a \"" << block.name
+                               << "\", which this ITK does not know");
+    }
+    if (name.rfind("CompositeTransform", 0) == 0)
+    {
+      continue; // its parts follow as blocks of their own
+    }
+    if (!block.hasParameters || !block.hasFixedParameters)
+    {
+      itkGenericExceptionMacro(<< path << ": transform " << index << " (" << block.name << ") has no "
+                               << (block.hasParameters ? "\"FixedParameters:\"" : "\"Parameters:\"") << " line");
+    }
+    const auto fixed = TransformFileValues(path, block.fixedParameters, index, true);
+    if (fixed.size() != transform->GetFixedParameters().size())
+    {
+      itkGenericExceptionMacro(<< path << ": transform " << index << " (" << block.name << ") has " << fixed.size()
+                               << " fixed parameters, it takes " << transform->GetFixedParameters().size());
+    }
+    itk::TransformBaseTemplate<double>::FixedParametersType fixedParameters(fixed.size());
+    for (size_t k = 0; k < fixed.size(); ++k)
+    {
+      fixedParameters[k] = fixed[k];
+    }
+    transform->SetFixedParameters(fixedParameters);
+    const auto parameters = TransformFileValues(path, block.parameters, index, false);
+    if (parameters.size() != transform->GetNumberOfParameters())
+    {
+      itkGenericExceptionMacro(<< path << ": transform " << index << " (" << block.name << ") has " << parameters.size()
+                               << " parameters, it takes " << transform->GetNumberOfParameters());
     }
   }
 }
@@ -124,6 +173,20 @@ template <unsigned int D>
 typename itk::Transform<double, D, D>::Pointer
 ReadTransformFile(const std::string & path)
 {
+  const std::string extension = itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
+  if (extension == ".tfm" || extension == ".txt")
+  {
+    std::ifstream in(path);
+    std::string   word;
+    // elastix writes its own parameter format ("(Transform ...)" lines) into .txt files, which ITK cannot read
+    if (in >> word && word.front() == '(')
+    {
+      itkGenericExceptionMacro(<< path
+                               << " is an elastix transform parameter file, which ITK cannot read: give the "
+                                  "deformation field transformix writes (transformix -def all) instead");
+    }
+    CheckTextTransformFile(path);
+  }
   auto reader = itk::TransformFileReaderTemplate<double>::New();
   reader->SetFileName(path);
   try
@@ -132,23 +195,9 @@ ReadTransformFile(const std::string & path)
   }
   catch (const itk::ExceptionObject & e)
   {
-    // elastix writes its own parameter format ("(Transform ...)" lines) into .txt files, which ITK cannot read
-    std::ifstream in(path);
-    std::string   word;
-    if (in >> word && word.front() == '(')
-    {
-      itkGenericExceptionMacro(<< path
-                               << " is an elastix transform parameter file, which ITK cannot read: give the "
-                                  "deformation field transformix writes (transformix -def all) instead");
-    }
     itkGenericExceptionMacro(<< "cannot read a transform from " << path << ": " << e.GetDescription());
   }
-  const auto &      list = *reader->GetTransformList();
-  const std::string extension = itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
-  if (extension == ".tfm" || extension == ".txt")
-  {
-    CheckTextTransformParameters(path, list);
-  }
+  const auto & list = *reader->GetTransformList();
   if (list.empty())
   {
     itkGenericExceptionMacro(<< "no transform in " << path);

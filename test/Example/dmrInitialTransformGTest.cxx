@@ -20,6 +20,7 @@
 #include "dmrExampleTestDirectory.h"
 #include "dmrInitialTransform.h"
 #include "itkAffineTransform.h"
+#include "itkBSplineTransform.h"
 #include "itkCompositeTransform.h"
 #include "itkEuler3DTransform.h"
 #include "itkImageFileWriter.h"
@@ -164,6 +165,56 @@ TEST(InitialTransform, TransformFilesOfEveryFormatGiveTheirDisplacementOnTheFixe
   }
 }
 
+// the check that runs before ITK's text reader (CheckTextTransformFile) takes what ITK writes: a B-spline (whose
+// number of parameters its fixed parameters set), a rigid transform, and a float transform read as double
+TEST(InitialTransform, TextFilesOfOtherTransformKindsPassTheCheck)
+{
+  using BSplineType = itk::BSplineTransform<double, 3, 3>;
+  auto                                bspline = BSplineType::New();
+  BSplineType::PhysicalDimensionsType extent;
+  BSplineType::MeshSizeType           mesh;
+  BSplineType::OriginType             origin;
+  extent.Fill(60.0);
+  mesh.Fill(3);
+  origin[0] = -50.0;
+  origin[1] = -10.0;
+  origin[2] = 80.0;
+  bspline->SetTransformDomainOrigin(origin);
+  bspline->SetTransformDomainPhysicalDimensions(extent);
+  bspline->SetTransformDomainMeshSize(mesh);
+  auto parameters = bspline->GetParameters();
+  for (unsigned int i = 0; i < parameters.size(); ++i)
+  {
+    parameters[i] = 0.5 * std::sin(0.37 * i);
+  }
+  bspline->SetParameters(parameters);
+  auto euler = itk::Euler3DTransform<double>::New();
+  euler->SetRotation(0.05, -0.02, 0.1);
+  auto offset = euler->GetTranslation();
+  offset[2] = 3.0;
+  euler->SetTranslation(offset);
+  for (const auto & [name, transform] :
+       { std::make_pair("bspline.tfm", static_cast<itk::Transform<double, 3, 3> *>(bspline)),
+         std::make_pair("euler.tfm", static_cast<itk::Transform<double, 3, 3> *>(euler)) })
+  {
+    Write(transform, Path(name));
+    std::string kind;
+    const auto  field = dmrtools::InitialFieldOnGrid<3>(Path(name), Reference().GetPointer(), kind);
+    EXPECT_LT(LargestErrorAgainst(field, transform), 1e-4) << name;
+  }
+  auto single = itk::AffineTransform<float, 3>::New();
+  auto singleParameters = single->GetParameters();
+  singleParameters[9] = 2.5f;
+  single->SetParameters(singleParameters);
+  auto writer = itk::TransformFileWriterTemplate<float>::New();
+  writer->SetInput(single);
+  writer->SetFileName(Path("float.tfm"));
+  writer->Update();
+  std::string kind;
+  const auto  field = dmrtools::InitialFieldOnGrid<3>(Path("float.tfm"), Reference().GetPointer(), kind);
+  EXPECT_NEAR(field->GetPixel({ { 2, 3, 4 } })[0], 2.5f, 1e-5);
+}
+
 TEST(InitialTransform, ACompositeTransformIsTheCompositionOfItsParts)
 {
   auto translation = itk::TranslationTransform<double, 3>::New();
@@ -280,6 +331,16 @@ TEST(InitialTransform, BadFilesAreRefusedWithTheReason)
 
   // ITK's text reader alone took these without a word (another translation than the file says)
   const std::string header = "#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_3_3\n";
+  std::ofstream(Path("unknown.tfm")) << header.substr(0, header.find("Transform: "))
+                                     << "Transform: NoSuchTransform_double_3_3\n"
+                                     << "Parameters: 1\nFixedParameters:\n";
+  EXPECT_TRUE(RefusedMentioning(Path("unknown.tfm"), "which this ITK does not know"));
+  std::ofstream(Path("no-parameters.tfm")) << header << "FixedParameters:\n";
+  EXPECT_TRUE(RefusedMentioning(Path("no-parameters.tfm"), "has no \"Parameters:\" line"));
+  std::ofstream(Path("fixed-short.tfm"))
+    << "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+       "Parameters: 1 0 0 0 1 0 0 0 1 0 0 0\nFixedParameters: 1 2\n";
+  EXPECT_TRUE(RefusedMentioning(Path("fixed-short.tfm"), "has 2 fixed parameters, it takes 3"));
   for (const auto & [name, parameters, text] :
        { std::make_tuple("nan.tfm", "1 NaN 3", "\"NaN\" in the parameters of transform 0 is not a finite number"),
          std::make_tuple("typo.txt", "1 2 x3", "\"x3\" in the parameters"),
