@@ -24,12 +24,15 @@
 // point to its moving point, u_0(x) = T(x) - x.
 #include "itkCompositeTransform.h"
 #include "itkImage.h"
+#include "itkImageToImageFilterCommon.h"
 #include "itkNearestNeighborExtrapolateImageFunction.h"
 #include "itkResampleImageFilter.h"
 #include "itkTransformFactoryBase.h"
 #include "itkTransformFileReader.h"
 #include "itkTransformToDisplacementFieldFilter.h"
 #include "itkVector.h"
+#include "dmrGrid.h"
+#include "dmrImageMetrics.h"
 #include "dmrReadImage.h"
 #include "itksys/SystemTools.hxx"
 #include <cmath>
@@ -41,13 +44,20 @@
 
 namespace dmrtools
 {
+/** The last extension of a file name, lower case (".tfm"). */
+inline std::string
+LowerCaseExtension(const std::string & path)
+{
+  return itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
+}
+
 /** True for the file names ITK's transform readers take (.tfm and .txt: ITK's text format; .mat: MATLAB, as ANTs
  * writes affine transforms; .h5, .hdf5: HDF5, e.g. ANTs' composite transforms); every other name is read as a
  * displacement field image. */
 inline bool
 IsTransformFileName(const std::string & path)
 {
-  const std::string extension = itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
+  const std::string extension = LowerCaseExtension(path);
   return extension == ".tfm" || extension == ".txt" || extension == ".mat" || extension == ".h5" ||
          extension == ".hdf5";
 }
@@ -173,7 +183,7 @@ template <unsigned int D>
 typename itk::Transform<double, D, D>::Pointer
 ReadTransformFile(const std::string & path)
 {
-  const std::string extension = itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
+  const std::string extension = LowerCaseExtension(path);
   if (extension == ".tfm" || extension == ".txt")
   {
     std::ifstream in(path);
@@ -254,15 +264,12 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
     }
     kind = "displacement field";
     field = ReadImageOrDicomSeries<FieldType>(path);
-    const auto & region = field->GetLargestPossibleRegion();
-    const auto & referenceRegion = reference->GetLargestPossibleRegion();
-    const double tolerance = 1e-6 * reference->GetSpacing()[0];
-    const bool   sameGrid =
-      region == referenceRegion &&
-      field->GetOrigin().GetVnlVector().is_equal(reference->GetOrigin().GetVnlVector(), tolerance) &&
-      field->GetSpacing().GetVnlVector().is_equal(reference->GetSpacing().GetVnlVector(), tolerance) &&
-      field->GetDirection().GetVnlMatrix().as_ref().is_equal(reference->GetDirection().GetVnlMatrix().as_ref(), 1e-6);
-    if (!sameGrid)
+    // on the fixed grid as FEMRegistrationMethod checks it (its tolerances): taken as it is, otherwise resampled
+    if (!itk::dmr::GridMismatch<D>(reference,
+                                   field.GetPointer(),
+                                   itk::ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
+                                   itk::ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance())
+           .empty())
     {
       auto resample = itk::ResampleImageFilter<FieldType, FieldType>::New();
       resample->SetInput(field);
@@ -274,17 +281,12 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
       kind = "displacement field (resampled onto the fixed grid)";
     }
   }
-  const auto * u = field->GetBufferPointer();
-  for (size_t p = 0, n = field->GetBufferedRegion().GetNumberOfPixels(); p < n; ++p)
+  const auto p = itk::dmr::FirstNonFinitePixel(field.GetPointer());
+  if (p >= 0)
   {
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      if (!std::isfinite(static_cast<double>(u[p][k])))
-      {
-        itkGenericExceptionMacro(<< "the initial displacement is not finite (" << u[p][k] << ") at voxel "
-                                 << field->ComputeIndex(static_cast<itk::OffsetValueType>(p)) << " of the fixed grid");
-      }
-    }
+    itkGenericExceptionMacro(<< "the initial displacement is not finite (" << field->GetBufferPointer()[p]
+                             << ") at voxel " << field->ComputeIndex(static_cast<itk::OffsetValueType>(p))
+                             << " of the fixed grid");
   }
   return field;
 }

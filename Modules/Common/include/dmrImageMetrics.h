@@ -60,22 +60,35 @@ IntensityRange(const TImage * image)
   return { lo, hi };
 }
 
-/** Buffer offset of the first pixel whose value is not a finite number (NaN or infinite), -1 when there is none.
- * Integer images have none. */
+/** Buffer offset of the first pixel whose value (or, for a vector pixel such as a displacement, one of whose
+ * components) is not a finite number (NaN or infinite), -1 when there is none. Integer images have none. */
 template <typename TImage>
 int64_t
 FirstNonFinitePixel(const TImage * image)
 {
   using PixelType = typename TImage::PixelType;
-  if constexpr (std::is_floating_point_v<PixelType>)
+  if constexpr (std::is_floating_point_v<typename NumericTraits<PixelType>::ValueType>)
   {
     const auto * buffer = image->GetBufferPointer();
     const auto   n = static_cast<int64_t>(image->GetBufferedRegion().GetNumberOfPixels());
     for (int64_t p = 0; p < n; ++p)
     {
-      if (!std::isfinite(buffer[p]))
+      if constexpr (std::is_floating_point_v<PixelType>)
       {
-        return p;
+        if (!std::isfinite(buffer[p]))
+        {
+          return p;
+        }
+      }
+      else
+      {
+        for (unsigned int k = 0; k < NumericTraits<PixelType>::GetLength(buffer[p]); ++k)
+        {
+          if (!std::isfinite(buffer[p][k]))
+          {
+            return p;
+          }
+        }
       }
     }
   }

@@ -296,17 +296,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   requireFinite("moving", moving);
   if (const DisplacementFieldType * initial = this->GetInitialDisplacementField())
   {
-    const auto * u0 = initial->GetBufferPointer();
-    for (SizeValueType p = 0, n = initial->GetBufferedRegion().GetNumberOfPixels(); p < n; ++p)
+    const auto p = dmr::FirstNonFinitePixel(initial);
+    if (p >= 0)
     {
-      for (unsigned int k = 0; k < ImageDimension; ++k)
-      {
-        if (!std::isfinite(static_cast<double>(u0[p][k])))
-        {
-          itkExceptionMacro("the initial displacement field has a non-finite value ("
-                            << u0[p][k] << ") at index " << initial->ComputeIndex(static_cast<OffsetValueType>(p)));
-        }
-      }
+      itkExceptionMacro("the initial displacement field has a non-finite value ("
+                        << initial->GetBufferPointer()[p] << ") at index "
+                        << initial->ComputeIndex(static_cast<OffsetValueType>(p)));
     }
   }
   for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
