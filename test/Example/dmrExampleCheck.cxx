@@ -25,6 +25,8 @@
 //                                          SHIFT voxels along x)
 //   dmrExampleCheck make-3d-mask OUT [V]   writes a mask of the inner part of that image on a coarser grid (spacing 2),
 //                                          float, V (default 1) inside and 0 outside
+//   dmrExampleCheck make-3d-mask-fine OUT D  the same inner part as a 0/1 mask on the make-3d grid, its origin moved by
+//                                          D mm along every axis (D = 0: exactly that grid)
 //   dmrExampleCheck make-constant OUT      writes a 32x32 float image that is 7 everywhere
 //   dmrExampleCheck make-2d OUT            writes a 32x32 float image with a gradient and a bright square
 //   dmrExampleCheck make-2d-byte OUT [SHIFT]  the same as unsigned char (e.g. a .png), the square moved by SHIFT
@@ -281,6 +283,28 @@ Make3DMask(const std::string & path, double inside)
   return EXIT_SUCCESS;
 }
 
+/** The inner part of the make-3d image (voxels 2..13 x 2..9 x 2..7) as a 0/1 mask on its 16x12x10 grid (spacing 1,
+ * origin 0), the origin moved by `shift` mm along every axis: a header that differs from the image's by a rounding. */
+int
+Make3DMaskFine(const std::string & path, double shift)
+{
+  using MaskType = itk::Image<unsigned char, 3>;
+  auto               mask = MaskType::New();
+  MaskType::SizeType size{ { 16, 12, 10 } };
+  mask->SetRegions(MaskType::RegionType(size));
+  MaskType::PointType origin;
+  origin.Fill(shift);
+  mask->SetOrigin(origin);
+  mask->Allocate();
+  for (itk::ImageRegionIteratorWithIndex<MaskType> it(mask, mask->GetLargestPossibleRegion()); !it.IsAtEnd(); ++it)
+  {
+    const auto & idx = it.GetIndex();
+    it.Set(idx[0] >= 2 && idx[0] < 14 && idx[1] >= 2 && idx[1] < 10 && idx[2] >= 2 && idx[2] < 8 ? 1 : 0);
+  }
+  Write(mask.GetPointer(), path);
+  return EXIT_SUCCESS;
+}
+
 /** 32x32 image: a gradient along y (gradient per row) plus a bright square of value `square` (columns 8..19 moved by
  * shift along x, rows 10..23). */
 template <typename TPixel>
@@ -339,7 +363,7 @@ Usage()
 {
   std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | border-equals A V1,V2[,V3] | "
                "make-3d OUT [SHIFT] | "
-               "make-3d-thin OUT | make-3d-mask OUT [VALUE] | "
+               "make-3d-thin OUT | make-3d-mask OUT [VALUE] | make-3d-mask-fine OUT SHIFT | "
                "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
                "make-constant OUT\n";
   return 2;
@@ -367,6 +391,10 @@ main(int argc, char * argv[])
     if (mode == "make-3d-mask" && (argc == 3 || argc == 4))
     {
       return Make3DMask(argv[2], argc == 4 ? std::atof(argv[3]) : 1.0);
+    }
+    if (mode == "make-3d-mask-fine" && argc == 4)
+    {
+      return Make3DMaskFine(argv[2], std::atof(argv[3]));
     }
     if (mode == "make-constant" && argc == 3)
     {
