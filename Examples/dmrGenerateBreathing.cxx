@@ -318,6 +318,8 @@ main(int argc, char * argv[])
 {
   return dmrtools::RunReportingErrors("dmrGenerateBreathing", [&]() {
     dmrtools::CatchInterruptSignals(); // an interrupted run commits nothing (Staging::Commit)
-    return Run(ParseArguments(argc, argv));
+    const Options opt = ParseArguments(argc, argv);
+    dmrtools::StartItkThreadPool();
+    return Run(opt);
   });
 }

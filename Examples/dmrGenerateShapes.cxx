@@ -32,6 +32,7 @@ main(int argc, char * argv[])
 {
   return dmrtools::RunReportingErrors("dmrGenerateShapes", [&]() {
     dmrtools::CatchInterruptSignals(); // an interrupted run commits nothing (Staging::Commit)
+    dmrtools::StartItkThreadPool();
     using dmrtools::UsageError;
     std::string shape, outputDir;
     long        fidelityNodes = 100;

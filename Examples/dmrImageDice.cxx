@@ -55,6 +55,7 @@ main(int argc, char * argv[])
         throw dmrtools::UsageError("the threshold must be a finite number, got '" + std::string(argv[3]) + "'");
       }
     }
+    dmrtools::StartItkThreadPool();
     using ImageType = itk::Image<float, 3>; // 2D files are read as one slice
     auto read = [](const std::string & path) {
       unsigned int components = 1;

@@ -66,10 +66,10 @@ InitializeItkGlobals()
   itk::ObjectFactoryBase::GetRegisteredFactories(); // ObjectFactoryBase
   itk::Object::GetGlobalWarningDisplay();           // GlobalWarningDisplay
   itk::DataObject::GetGlobalReleaseDataFlag();      // GlobalReleaseDataFlag
-  itk::MultiThreaderBase::New();                    // MultiThreaderBase, and ThreadPool for the pool threader
-  itk::OutputWindow::GetInstance();                 // OutputWindow
-  itk::FloatingPointExceptions::GetEnabled();       // ExceptionGlobals
-  itk::MetaImageIO::GetDefaultDoublePrecision();    // DefaultDoublePrecision
+  StartItkThreadPool(); // MultiThreaderBase, and ThreadPool for the pool threader (its threads checked first)
+  itk::OutputWindow::GetInstance();                                      // OutputWindow
+  itk::FloatingPointExceptions::GetEnabled();                            // ExceptionGlobals
+  itk::MetaImageIO::GetDefaultDoublePrecision();                         // DefaultDoublePrecision
   itk::Statistics::MersenneTwisterRandomVariateGenerator::GetInstance(); // MersenneTwisterGlobals
   itk::BuildInformation::GetInstance();                                  // BuildInformationGlobals
 }

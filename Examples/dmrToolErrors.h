@@ -21,13 +21,20 @@
 // Error reporting shared by the command-line tools: every failure is one line on stderr and a non-zero exit code
 // (2 for bad input, 1 for a failure while running).
 #include "itkMacro.h"
+#include "itkMultiThreaderBase.h"
 #include "itkObject.h"
+#include <condition_variable>
 #include <csignal>
 #include <signal.h> // sigaction (POSIX)
 #include <time.h>   // clock_gettime (POSIX)
 #include <iostream>
+#include <mutex>
+#include <new>
 #include <stdexcept>
 #include <string>
+#include <system_error>
+#include <thread>
+#include <vector>
 
 namespace dmrtools
 {
@@ -181,6 +188,61 @@ EndByInterruptSignal(const char * tool, int signalNumber)
   return 128 + signalNumber;
 }
 
+/** Starts `count` threads that all run at once, then ends them; throws a std::runtime_error (exit code 1) that says so
+ * when the process may not start that many: a limit on its threads or on its virtual memory (each thread reserves a
+ * stack). */
+inline void
+RequireThreads(unsigned int count)
+{
+  std::mutex               mutex;
+  std::condition_variable  released;
+  bool                     release = false;
+  std::vector<std::thread> threads;
+  threads.reserve(count);
+  std::string failure;
+  try
+  {
+    while (threads.size() < count)
+    {
+      threads.emplace_back([&] {
+        std::unique_lock<std::mutex> lock(mutex);
+        released.wait(lock, [&] { return release; });
+      });
+    }
+  }
+  catch (const std::system_error & e)
+  {
+    failure = e.what();
+  }
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    release = true;
+  }
+  released.notify_all();
+  for (auto & t : threads)
+  {
+    t.join();
+  }
+  if (!failure.empty())
+  {
+    throw std::runtime_error("cannot start " + std::to_string(count) + " threads, only " +
+                             std::to_string(threads.size()) + " (" + failure +
+                             "): the process's limit on threads or on virtual memory (ulimit -u, ulimit -v, a "
+                             "container's pids limit) is lower; run with fewer threads (--threads, or "
+                             "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS)");
+  }
+}
+
+/** Makes ITK's thread pool on the calling thread once the process is known to be able to start its threads. ITK 5.2's
+ * pool cannot recover from a thread that fails to start: the process then ended by std::terminate with no message,
+ * or crashed at exit after its error message. Call it before anything else uses ITK's threader. */
+inline void
+StartItkThreadPool()
+{
+  RequireThreads(itk::MultiThreaderBase::GetGlobalDefaultNumberOfThreads());
+  itk::MultiThreaderBase::New();
+}
+
 /** Runs a tool's body and turns every exception into "<tool>: error: <one line>" on stderr and an exit code; an
  * Interrupted exception (after CatchInterruptSignals) ends the process by its signal once the body has cleaned up. */
 template <typename TBody>
@@ -201,9 +263,31 @@ RunReportingErrors(const char * tool, TBody && body)
     std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.what())) << '\n';
     return 2;
   }
+  catch (const itk::MemoryAllocationError & e)
+  {
+    std::cerr << tool << ": error: out of memory: " << OneLine(WithoutItkPrefix(e.GetDescription())) << '\n';
+    return 1;
+  }
   catch (const itk::ExceptionObject & e)
   {
     std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.GetDescription())) << '\n';
+    return 1;
+  }
+  catch (const std::bad_alloc & e)
+  {
+    std::cerr << tool << ": error: out of memory (" << e.what()
+              << "): the run needs more memory than the process may use\n";
+    return 1;
+  }
+  catch (const std::system_error & e)
+  {
+    std::cerr << tool << ": error: " << OneLine(WithoutItkPrefix(e.what()));
+    if (e.code() == std::errc::resource_unavailable_try_again)
+    {
+      std::cerr << " (a thread could not start: the process's limit on threads or on virtual memory is lower than "
+                   "the run needs; run with fewer threads)";
+    }
+    std::cerr << '\n';
     return 1;
   }
   catch (const std::exception & e)

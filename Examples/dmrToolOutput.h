@@ -32,6 +32,7 @@
 #include <stdexcept>
 #include <string>
 #include <signal.h>
+#include <sys/stat.h> // stat (POSIX)
 #include <unistd.h>
 #include <vector>
 #include <zlib.h>
@@ -270,11 +271,21 @@ WriteTextFile(const std::string & path, const std::string & text)
 }
 
 /** Writes text into the file at path through a temporary file next to it that is renamed onto path once all of it is
- * written: path is either left as it was (an earlier report, or nothing) or holds the whole text, never a part.
+ * written: path is either left as it was (an earlier report, or nothing) or holds the whole text, never a part. Like
+ * every output of the tools, a link at path is replaced, not what it points to (see DirectoryEntry), except where it
+ * points to something that is not a regular file: a path that names a terminal, a pipe or a device (/dev/stdout, a
+ * link to /proc/self/fd/1) is written into, since renaming onto it replaced the device or the link with a file (as
+ * root, `--report /dev/stdout` replaced /dev/stdout for every process, and `--report /dev/full` hid the full disk).
  * Throws std::runtime_error (after removing the temporary file) otherwise. */
 inline void
 ReplaceTextFile(const std::string & path, const std::string & text)
 {
+  struct stat target = {};
+  if (::stat(path.c_str(), &target) == 0 && !S_ISREG(target.st_mode) && !S_ISDIR(target.st_mode))
+  {
+    WriteTextFile(path, text);
+    return;
+  }
   const std::string partial = path + ".dmr-partial-" + std::to_string(::getpid());
   try
   {

@@ -58,12 +58,15 @@ run_reg() {
   # REG_PRELOAD: a library preloaded into REG only (not into `timeout`)
   local preload=()
   [ -z "${REG_PRELOAD:-}" ] || preload=(env "LD_PRELOAD=$REG_PRELOAD")
+  # REG_LIMITS: shell commands (ulimit) that limit the tool only
+  local limited=()
+  [ -z "${REG_LIMITS:-}" ] || limited=(bash -c "$REG_LIMITS && exec \"\$@\"" limited)
   if command -v timeout >/dev/null; then
-    timeout 90 "${preload[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
+    timeout 90 "${preload[@]}" "${limited[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
     RC=$?
     [ "$RC" -ne 124 ] || echo "itkDynamicMeshRegistration did not finish within 90 s: $*"
   else
-    "${preload[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
+    "${preload[@]}" "${limited[@]}" "$REG" "$@" >"$W/stdout" 2>"$W/stderr"
     RC=$?
   fi
 }
@@ -282,6 +285,22 @@ run-regular)
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 5 regular 30
   check "--report in the new output directory is written" cmp "$out/summary.json" "$out/report.json"
+  # --report into a pipe through a link, as /dev/stdout is (a link to /proc/self/fd/1): the report is written into the
+  # pipe, and neither the link nor the pipe is replaced by a file (as root, the tool replaced /dev/stdout itself)
+  mkfifo "$W/report-pipe" && ln -s report-pipe "$W/report-link"
+  cat "$W/report-pipe" >"$W/piped-report.json" &
+  reader=$!
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-piped" \
+    --nodes 30 --iterations 5 --threads 2 --mesh regular --report "$W/report-link"
+  check "a report into a pipe: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0
+  sleep 0.5
+  if kill -0 "$reader" 2>/dev/null; then # the tool never opened the pipe: release the reader
+    timeout 5 bash -c ": >'$W/report-pipe'"
+  fi
+  wait "$reader"
+  check "the pipe got the report" cmp "$W/piped-report.json" "$W/out-piped/report.json"
+  check "the link is still a link" test -L "$W/report-link"
+  check "the pipe is still a pipe" test -p "$W/report-pipe"
   ;;
 run-initial-transform)
   # a translation as ITK's text transform file: the run starts from it, the report names it, and the border of the
@@ -765,6 +784,19 @@ bad-truncated-image)
   head -c 40 "$W/whole.png" >"$W/truncated.png"
   rm -f "$W/whole.png"
   expect_bad_input truncated-png --fixed "$W/truncated.png" --moving "$W/truncated.png" --nodes 30 --iterations 2
+  ;;
+bad-thread-limit)
+  # a process that may not start the threads it is asked for (here a virtual memory limit below the stacks of 128
+  # threads, 8 MiB each; also a container's pids limit or ulimit -u): one line that says so and exit 1. ITK 5.2's thread
+  # pool ended such a run by std::terminate with no message (exit 134), or crashed at exit after the message (139).
+  export REG_LIMITS="ulimit -s 8192 && ulimit -v 400000"
+  expect_bad_input thread-limit --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
+    --iterations 2 --threads 128
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 --threads 128 \
+    --output-dir "$W/out-limit"
+  check "thread limit: exit code 1 (got $RC)" test "$RC" -eq 1
+  check "the message says why ($(cat "$W/stderr"))" grep -q "cannot start 128 threads" "$W/stderr"
+  unset REG_LIMITS
   ;;
 bad-no-overlap)
   # a moving image that lies elsewhere in physical space (e.g. flipped, or another origin): an error, not a

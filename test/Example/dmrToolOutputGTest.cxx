@@ -30,7 +30,9 @@
 #include <fstream>
 #include <iterator>
 #include <random>
+#include <fcntl.h>
 #include <sys/resource.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -242,6 +244,51 @@ TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
                                       }),
             1);
   EXPECT_EQ(ReadBytes(dir + "/report.json").size(), std::string("{\"later\": 2}\n").size());
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+// ReplaceTextFile wrote a temporary file and renamed it onto the path, whatever the path named: a pipe or a device too
+// (as root, `--report /dev/stdout` replaced /dev/stdout, a link to /proc/self/fd/1, for every process on the machine,
+// and `--report /dev/full` hid the full disk). A link to a regular file is still replaced, not what it points to, as
+// every output of the tools (the check of outputs over inputs relies on it).
+TEST(ToolOutput, ReplaceTextFileWritesIntoPipesAndReplacesLinksToFiles)
+{
+  const std::string dir = TemporaryDirectory();
+  auto              readText = [](const std::string & path) {
+    const auto bytes = ReadBytes(path);
+    return std::string(bytes.begin(), bytes.end());
+  };
+  // a named pipe with a reader, reached through a link as /dev/stdout is: the reader gets the text, the pipe stays a
+  // pipe and the link a link
+  const std::string fifo = dir + "/pipe";
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+  ASSERT_EQ(::symlink("pipe", (dir + "/pipe-link").c_str()), 0);
+  const int reader = ::open(fifo.c_str(), O_RDONLY | O_NONBLOCK); // a reader, so that opening for writing does not wait
+  ASSERT_GE(reader, 0);
+  dmrtools::ReplaceTextFile(dir + "/pipe-link", "{\"piped\": 3}\n");
+  char          buffer[64] = {};
+  const ssize_t got = ::read(reader, buffer, sizeof(buffer) - 1);
+  ::close(reader);
+  EXPECT_EQ(std::string(buffer, got > 0 ? static_cast<size_t>(got) : 0), "{\"piped\": 3}\n");
+  struct stat entry = {};
+  ASSERT_EQ(::lstat(fifo.c_str(), &entry), 0);
+  EXPECT_TRUE(S_ISFIFO(entry.st_mode)) << "the pipe was replaced";
+  ASSERT_EQ(::lstat((dir + "/pipe-link").c_str(), &entry), 0);
+  EXPECT_TRUE(S_ISLNK(entry.st_mode)) << "the link to the pipe was replaced";
+  // a link to a regular file: the link is replaced by the new file, the file it named keeps its text
+  dmrtools::WriteTextFile(dir + "/real.json", "{\"earlier\": 1}\n");
+  ASSERT_EQ(::symlink("real.json", (dir + "/link.json").c_str()), 0);
+  dmrtools::ReplaceTextFile(dir + "/link.json", "{\"later\": 2}\n");
+  ASSERT_EQ(::lstat((dir + "/link.json").c_str(), &entry), 0);
+  EXPECT_TRUE(S_ISREG(entry.st_mode));
+  EXPECT_EQ(readText(dir + "/link.json"), "{\"later\": 2}\n");
+  EXPECT_EQ(readText(dir + "/real.json"), "{\"earlier\": 1}\n");
+  itksys::Directory listing;
+  listing.Load(dir);
+  for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+  {
+    EXPECT_EQ(std::string(listing.GetFile(i)).find("dmr-partial"), std::string::npos) << listing.GetFile(i);
+  }
   itksys::SystemTools::RemoveADirectory(dir);
 }
 
