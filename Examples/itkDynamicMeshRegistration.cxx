@@ -57,6 +57,7 @@
 #include <vtkCellType.h>
 #include <vtkOutputWindow.h>
 #include <vtkLogger.h>
+#include <vtkSMPTools.h>
 #endif
 
 #include <algorithm>
@@ -1366,6 +1367,13 @@ main(int argc, char * argv[])
       itk::MultiThreaderBase::SetGlobalDefaultNumberOfThreads(static_cast<itk::ThreadIdType>(opt.threads));
     }
     dmrtools::InitializeItkGlobals(); // before the inputs are read on threads
+#ifdef DMR_WITH_VTK
+    // VTK only reads and writes the small meshes here. Its default SMP back-end (TBB in Debian's VTK) starts a worker
+    // per core on first use, and a worker that fails to start (a limit on threads or on virtual memory) ends the
+    // process by std::terminate from inside TBB, with no message and no way to catch it (seen on the 16-core GPU
+    // machine under ulimit -v 2000000).
+    vtkSMPTools::SetBackend("Sequential");
+#endif
     // scalar images; a colour image (RGB, RGBA) is read as its luminance (ITK's conversion), anything else with several
     // components per pixel (e.g. a displacement field) is not an image to register
     auto dimensionOfScalarImage = [](const std::string & what, const std::string & path) {

@@ -436,6 +436,20 @@ run-itk-globals)
     grep -Eq '^itk-globals-watch: [1-9][0-9]* globals, all on the main thread$' "$W/stderr"
   [ "$RC" = 0 ] && check_run_outputs "$W/out" 2 dynamic 20 3 "$W/fixed3d.mha"
   ;;
+run-thread-watch)
+  # VTK writes the meshes on its sequential back-end: TBB (Debian VTK's default) starts no worker, since one that cannot
+  # start ends the process by std::terminate with no message. The watch library (dmrThreadWatch.cxx, preloaded; its path
+  # in THREAD_WATCH) counts the threads started, and those started by TBB.
+  [ -n "${THREAD_WATCH:-}" ] && [ -f "$THREAD_WATCH" ] || { fail "THREAD_WATCH is not a file"; finish; }
+  REG_PRELOAD=$THREAD_WATCH run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out" \
+    --nodes 30 --iterations 3 --save-mesh-every 1
+  cat "$W/stdout" "$W/stderr"
+  check "the watched run exits 0" test "$RC" = 0
+  check "it wrote a mesh per iteration" test -s "$W/out/mesh_0003.vtu"
+  check "the watch library was active and saw threads started" \
+    grep -Eq '^thread-watch: [1-9][0-9]* threads, [0-9]+ by TBB$' "$W/stderr"
+  check "TBB started no thread" grep -Eq '^thread-watch: [0-9]+ threads, 0 by TBB$' "$W/stderr"
+  ;;
 run-3d)
   # a 3D pair with a mask on a coarser grid (resampled onto the fixed grid) and two landmark pairs
   check "make a 3D fixed image" "$CHECK" make-3d "$W/fixed3d.nii.gz"
