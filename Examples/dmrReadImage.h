@@ -45,11 +45,13 @@
 #include "dmrToolErrors.h"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
+#include <cstdio>
 #include <cmath>
 #include <future>
 #include <sstream>
 #include <string>
 #include <vector>
+#include <unistd.h> // dup, dup2 (POSIX)
 
 namespace dmrtools
 {
@@ -244,6 +246,75 @@ ReadImageOrDicomSeries(const std::string & path)
   }
   return reader->GetOutput();
 }
+/** Captures what is written to the process's standard error (file descriptor 2, so C's stderr and std::cerr alike)
+ * from its construction to Release(): NIfTI's and MetaIO's readers print their own lines about a bad header ("** ERROR:
+ * nifti_convert_nhdr2nim: bad dim[0]", four lines of MetaIO) before ITK throws, which broke the tools' one-line errors.
+ * What other threads write meanwhile is captured too, so keep it short. Captures nothing when no temporary file can be
+ * made. */
+class StandardErrorCapture
+{
+public:
+  StandardErrorCapture()
+  {
+    std::fflush(stderr);
+    std::cerr.flush();
+    m_File = std::tmpfile();
+    if (m_File != nullptr)
+    {
+      m_Saved = ::dup(2);
+      if (m_Saved < 0 || ::dup2(::fileno(m_File), 2) < 0)
+      {
+        if (m_Saved >= 0)
+        {
+          ::close(m_Saved);
+        }
+        std::fclose(m_File);
+        m_File = nullptr;
+      }
+    }
+  }
+  StandardErrorCapture(const StandardErrorCapture &) = delete;
+  StandardErrorCapture &
+  operator=(const StandardErrorCapture &) = delete;
+  ~StandardErrorCapture() { Release(); }
+
+  /** Ends the capture (standard error goes where it went before) and returns what was written, on one line (lines
+   * joined by "; ", at most 400 characters). */
+  std::string
+  Release()
+  {
+    if (m_File == nullptr)
+    {
+      return m_Text;
+    }
+    std::fflush(stderr);
+    std::cerr.flush();
+    ::dup2(m_Saved, 2);
+    ::close(m_Saved);
+    std::rewind(m_File);
+    char         buffer[400];
+    const size_t got = std::fread(buffer, 1, sizeof(buffer), m_File);
+    std::fclose(m_File);
+    m_File = nullptr;
+    std::string text(buffer, got);
+    while (!text.empty() && (text.back() == '\n' || text.back() == ' '))
+    {
+      text.pop_back();
+    }
+    for (size_t at = text.find('\n'); at != std::string::npos; at = text.find('\n', at))
+    {
+      text.replace(at, 1, "; ");
+    }
+    m_Text = OneLine(text);
+    return m_Text;
+  }
+
+private:
+  std::FILE * m_File{ nullptr };
+  int         m_Saved{ -1 };
+  std::string m_Text;
+};
+
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
  * holds a DICOM series; components per pixel into *components and whether they are an RGB(A) colour into *colour
  * when given (1 and false for DICOM). Reads the header only, and checks the file's length where the format allows (a
@@ -275,10 +346,16 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
     }
     return 3;
   }
+  // what the image libraries print about the file goes into the message (one line), not beside it
+  StandardErrorCapture libraries;
+  auto                 said = [&libraries] {
+    const std::string text = libraries.Release();
+    return text.empty() ? std::string() : " (the reader said: " + text + ")";
+  };
   auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
   if (!io)
   {
-    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)");
+    throw UsageError("cannot read an image from " + path + " (unknown or unsupported format)" + said());
   }
   io->SetFileName(path);
   // a short file: the checks' messages name the file
@@ -299,8 +376,9 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
   }
   catch (const itk::ExceptionObject & e)
   {
-    throw UsageError("cannot read an image from " + path + ": " + e.GetDescription());
+    throw UsageError("cannot read an image from " + path + ": " + e.GetDescription() + said());
   }
+  libraries.Release(); // a header that reads: what was printed about it is not an error (ITK's warnings are off too)
   checked([&] { CheckRawPixelDataIsComplete(path, io); });
   if (components)
   {

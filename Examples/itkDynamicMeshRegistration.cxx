@@ -684,26 +684,25 @@ Run(const Options & opt)
     std::async(launch(opt.fixed), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.fixed); });
   auto movingRead =
     std::async(launch(opt.moving), [&] { return dmrtools::ReadImageOrDicomSeries<ImageType>(opt.moving); });
-  // an optional input of dimension D, read on its own thread like the images
+  // an optional input of dimension D, read on its own thread like the images once its header is checked here (the
+  // header check takes what the image libraries print about a bad header into its one-line message)
   auto readOptional = [&launch](auto pointerTag, const std::string & path, const std::string & what) {
     using ReadType = typename decltype(pointerTag)::ObjectType;
-    return std::async(launch(path), [&path, what] {
-      constexpr bool isField = std::is_same_v<ReadType, FieldType>;
-      unsigned int   components = 1;
-      if (ImageDimensionOf(path, &components) != D)
-      {
-        throw UsageError(what + " is not a " + std::to_string(D) + "D " + (isField ? "field: " : "image: ") + path);
-      }
-      // ITK would fill a field's components from a scalar image, or take a mask from a vector image's first one
-      const unsigned int expected = isField ? D : 1;
-      if (components != expected)
-      {
-        throw UsageError(what + " must have " + std::to_string(expected) + " component" + (expected > 1 ? "s" : "") +
-                         " per voxel" + (isField ? " (a displacement field)" : "") + ", " + path + " has " +
-                         std::to_string(components));
-      }
-      return dmrtools::ReadImageOrDicomSeries<ReadType>(path);
-    });
+    constexpr bool isField = std::is_same_v<ReadType, FieldType>;
+    unsigned int   components = 1;
+    if (ImageDimensionOf(path, &components) != D)
+    {
+      throw UsageError(what + " is not a " + std::to_string(D) + "D " + (isField ? "field: " : "image: ") + path);
+    }
+    // ITK would fill a field's components from a scalar image, or take a mask from a vector image's first one
+    const unsigned int expected = isField ? D : 1;
+    if (components != expected)
+    {
+      throw UsageError(what + " must have " + std::to_string(expected) + " component" + (expected > 1 ? "s" : "") +
+                       " per voxel" + (isField ? " (a displacement field)" : "") + ", " + path + " has " +
+                       std::to_string(components));
+    }
+    return std::async(launch(path), [&path] { return dmrtools::ReadImageOrDicomSeries<ReadType>(path); });
   };
   // The mask is read as float and taken as non-zero = inside here: read as unsigned char, ITK's cast made a soft mask's
   // 0.7 and a label 256 zero (outside) and a NaN undefined.

@@ -799,6 +799,24 @@ bad-truncated-image)
   rm -f "$W/whole.png"
   expect_bad_input truncated-png --fixed "$W/truncated.png" --moving "$W/truncated.png" --nodes 30 --iterations 2
   ;;
+bad-corrupt-header)
+  # headers the image libraries refuse with lines of their own on stderr (NIfTI: "** ERROR: nifti_convert_nhdr2nim:
+  # bad dim[0]"; MetaIO: four lines) before ITK throws: one line still, theirs inside ours
+  gzip -dc "$DATA/fixed.nii.gz" >"$W/bad-dim.nii"
+  printf '\011\000' | dd of="$W/bad-dim.nii" bs=1 seek=40 conv=notrunc 2>/dev/null # dim[0] = 9
+  gzip -dc "$DATA/fixed.nii.gz" >"$W/bad-type.nii"
+  printf '\011\003' | dd of="$W/bad-type.nii" bs=1 seek=70 conv=notrunc 2>/dev/null # datatype 777
+  printf 'ObjectType = Image\nNDims = 2\nDimSize = 8 8\nElementSpacing = nan 1\nElementType = MET_UCHAR\n' >"$W/bad.mha"
+  printf 'ElementDataFile = LOCAL\n' >>"$W/bad.mha"
+  head -c 64 /dev/zero >>"$W/bad.mha"
+  expect_bad_input nifti-dim --fixed "$W/bad-dim.nii" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2
+  expect_bad_input nifti-datatype --fixed "$DATA/fixed.nii.gz" --moving "$W/bad-type.nii" --nodes 30 --iterations 2
+  expect_bad_input nifti-mask --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
+    --fixed-mask "$W/bad-dim.nii"
+  expect_bad_input metaimage --fixed "$W/bad.mha" --moving "$W/bad.mha" --nodes 30 --iterations 2
+  run_reg --fixed "$W/bad-dim.nii" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-dim" --nodes 30 --iterations 2
+  check "the message holds the reader's reason ($(cat "$W/stderr"))" grep -q "bad dim\[0\]" "$W/stderr"
+  ;;
 bad-thread-limit)
   # a process that may not start the threads it is asked for (here a virtual memory limit below the stacks of 128
   # threads, 8 MiB each; also a container's pids limit or ulimit -u): one line that says so and exit 1. ITK 5.2's thread
