@@ -51,7 +51,6 @@
 #include <sstream>
 #include <string>
 #include <vector>
-#include <unistd.h> // dup, dup2 (POSIX)
 
 namespace dmrtools
 {
@@ -246,75 +245,6 @@ ReadImageOrDicomSeries(const std::string & path)
   }
   return reader->GetOutput();
 }
-/** Captures what is written to the process's standard error (file descriptor 2, so C's stderr and std::cerr alike)
- * from its construction to Release(): NIfTI's and MetaIO's readers print their own lines about a bad header ("** ERROR:
- * nifti_convert_nhdr2nim: bad dim[0]", four lines of MetaIO) before ITK throws, which broke the tools' one-line errors.
- * What other threads write meanwhile is captured too, so keep it short. Captures nothing when no temporary file can be
- * made. */
-class StandardErrorCapture
-{
-public:
-  StandardErrorCapture()
-  {
-    std::fflush(stderr);
-    std::cerr.flush();
-    m_File = std::tmpfile();
-    if (m_File != nullptr)
-    {
-      m_Saved = ::dup(2);
-      if (m_Saved < 0 || ::dup2(::fileno(m_File), 2) < 0)
-      {
-        if (m_Saved >= 0)
-        {
-          ::close(m_Saved);
-        }
-        std::fclose(m_File);
-        m_File = nullptr;
-      }
-    }
-  }
-  StandardErrorCapture(const StandardErrorCapture &) = delete;
-  StandardErrorCapture &
-  operator=(const StandardErrorCapture &) = delete;
-  ~StandardErrorCapture() { Release(); }
-
-  /** Ends the capture (standard error goes where it went before) and returns what was written, on one line (lines
-   * joined by "; ", at most 400 characters). */
-  std::string
-  Release()
-  {
-    if (m_File == nullptr)
-    {
-      return m_Text;
-    }
-    std::fflush(stderr);
-    std::cerr.flush();
-    ::dup2(m_Saved, 2);
-    ::close(m_Saved);
-    std::rewind(m_File);
-    char         buffer[400];
-    const size_t got = std::fread(buffer, 1, sizeof(buffer), m_File);
-    std::fclose(m_File);
-    m_File = nullptr;
-    std::string text(buffer, got);
-    while (!text.empty() && (text.back() == '\n' || text.back() == ' '))
-    {
-      text.pop_back();
-    }
-    for (size_t at = text.find('\n'); at != std::string::npos; at = text.find('\n', at))
-    {
-      text.replace(at, 1, "; ");
-    }
-    m_Text = OneLine(text);
-    return m_Text;
-  }
-
-private:
-  std::FILE * m_File{ nullptr };
-  int         m_Saved{ -1 };
-  std::string m_Text;
-};
-
 /** Dimension of an image file (unit trailing axes squeezed: a one-slice 3D file is 2D) or 3 for a directory that
  * holds a DICOM series; components per pixel into *components and whether they are an RGB(A) colour into *colour
  * when given (1 and false for DICOM). Reads the header only, and checks the file's length where the format allows (a

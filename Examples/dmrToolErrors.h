@@ -24,9 +24,11 @@
 #include "itkMultiThreaderBase.h"
 #include "itkObject.h"
 #include <condition_variable>
+#include <cstdio>
 #include <csignal>
 #include <signal.h> // sigaction (POSIX)
 #include <time.h>   // clock_gettime (POSIX)
+#include <unistd.h> // dup, dup2 (POSIX)
 #include <iostream>
 #include <mutex>
 #include <new>
@@ -187,6 +189,75 @@ EndByInterruptSignal(const char * tool, int signalNumber)
   std::raise(signalNumber);
   return 128 + signalNumber;
 }
+
+/** Captures what is written to the process's standard error (file descriptor 2, so C's stderr and std::cerr alike)
+ * from its construction to Release(): NIfTI's and MetaIO's readers print their own lines about a bad header ("** ERROR:
+ * nifti_convert_nhdr2nim: bad dim[0]", four lines of MetaIO) before ITK throws, which broke the tools' one-line errors.
+ * What other threads write meanwhile is captured too, so keep it short. Captures nothing when no temporary file can be
+ * made. */
+class StandardErrorCapture
+{
+public:
+  StandardErrorCapture()
+  {
+    std::fflush(stderr);
+    std::cerr.flush();
+    m_File = std::tmpfile();
+    if (m_File != nullptr)
+    {
+      m_Saved = ::dup(2);
+      if (m_Saved < 0 || ::dup2(::fileno(m_File), 2) < 0)
+      {
+        if (m_Saved >= 0)
+        {
+          ::close(m_Saved);
+        }
+        std::fclose(m_File);
+        m_File = nullptr;
+      }
+    }
+  }
+  StandardErrorCapture(const StandardErrorCapture &) = delete;
+  StandardErrorCapture &
+  operator=(const StandardErrorCapture &) = delete;
+  ~StandardErrorCapture() { Release(); }
+
+  /** Ends the capture (standard error goes where it went before) and returns what was written, on one line (lines
+   * joined by "; ", at most 400 characters). */
+  std::string
+  Release()
+  {
+    if (m_File == nullptr)
+    {
+      return m_Text;
+    }
+    std::fflush(stderr);
+    std::cerr.flush();
+    ::dup2(m_Saved, 2);
+    ::close(m_Saved);
+    std::rewind(m_File);
+    char         buffer[400];
+    const size_t got = std::fread(buffer, 1, sizeof(buffer), m_File);
+    std::fclose(m_File);
+    m_File = nullptr;
+    std::string text(buffer, got);
+    while (!text.empty() && (text.back() == '\n' || text.back() == ' '))
+    {
+      text.pop_back();
+    }
+    for (size_t at = text.find('\n'); at != std::string::npos; at = text.find('\n', at))
+    {
+      text.replace(at, 1, "; ");
+    }
+    m_Text = OneLine(text);
+    return m_Text;
+  }
+
+private:
+  std::FILE * m_File{ nullptr };
+  int         m_Saved{ -1 };
+  std::string m_Text;
+};
 
 /** Starts `count` threads that all run at once, then ends them; throws a std::runtime_error (exit code 1) that says so
  * when the process may not start that many: a limit on its threads or on its virtual memory (each thread reserves a

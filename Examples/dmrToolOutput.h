@@ -402,7 +402,27 @@ WriteImage(const TImage * image, const std::string & path)
   writer->SetInput(image);
   writer->SetFileName(raw);
   writer->SetUseCompression(!nifti);
-  writer->Update();
+  std::string said; // what the image library printed while writing (NIfTI: "** ERROR: NWAD: wrote only ..."), for
+                    // the one-line message
+  {
+    StandardErrorCapture library;
+    try
+    {
+      writer->Update();
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      said = library.Release();
+      if (said.empty())
+      {
+        throw;
+      }
+      itk::ExceptionObject withReason(e);
+      withReason.SetDescription(std::string(e.GetDescription()) + " (the writer said: " + said + ")");
+      throw withReason;
+    }
+    said = library.Release();
+  }
   if (nifti)
   {
     try
@@ -415,7 +435,8 @@ WriteImage(const TImage * image, const std::string & path)
       }
       catch (const itk::ExceptionObject &)
       {
-        throw std::runtime_error("cannot write " + path + ": the file was cut short (is the disk full?)");
+        throw std::runtime_error("cannot write " + path + ": the file was cut short (is the disk full?)" +
+                                 (said.empty() ? std::string() : " (the writer said: " + said + ")"));
       }
       GzipFileParallel(raw, path);
     }

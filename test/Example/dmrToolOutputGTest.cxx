@@ -247,6 +247,48 @@ TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
   itksys::SystemTools::RemoveADirectory(dir);
 }
 
+// The NIfTI library prints a short write ("** ERROR: NWAD: wrote only ...") to stderr and goes on: with the tool's own
+// error that made two lines. WriteImage takes the library's line into its message instead.
+TEST(ToolOutput, AShortWriteIsOneMessageWithTheLibrarysReason)
+{
+  const std::string dir = TemporaryDirectory();
+  using ImageType = itk::Image<float, 2>;
+  auto image = ImageType::New();
+  image->SetRegions(ImageType::SizeType{ { 512, 512 } });
+  image->Allocate();
+  image->FillBuffer(0.0f);
+  const std::string stderrFile = dir + "/stderr.txt", messageFile = dir + "/message.txt";
+  const pid_t       child = ::fork();
+  if (child == 0)
+  {
+    const int captured = ::open(stderrFile.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    ::dup2(captured, 2);
+    std::signal(SIGXFSZ, SIG_IGN);
+    const rlimit cap{ 1 << 20, 1 << 20 }; // the 1 MiB image does not fit with its header; the message does
+    ::setrlimit(RLIMIT_FSIZE, &cap);
+    std::string message = "no error";
+    try
+    {
+      dmrtools::WriteImage(image.GetPointer(), dir + "/cut.nii.gz");
+    }
+    catch (const std::exception & e)
+    {
+      message = e.what();
+    }
+    std::ofstream(messageFile) << message;
+    std::_Exit(0);
+  }
+  int status = 0;
+  ::waitpid(child, &status, 0);
+  ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+  const auto        message = ReadBytes(messageFile), printed = ReadBytes(stderrFile);
+  const std::string text(message.begin(), message.end());
+  EXPECT_NE(text.find("the file was cut short"), std::string::npos) << text;
+  EXPECT_NE(text.find("(the writer said: ** ERROR: NWAD: wrote only"), std::string::npos) << text;
+  EXPECT_EQ(std::string(printed.begin(), printed.end()), "") << "printed beside the message";
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
 // ReplaceTextFile wrote a temporary file and renamed it onto the path, whatever the path named: a pipe or a device too
 // (as root, `--report /dev/stdout` replaced /dev/stdout, a link to /proc/self/fd/1, for every process on the machine,
 // and `--report /dev/full` hid the full disk). A link to a regular file is still replaced, not what it points to, as
