@@ -207,6 +207,17 @@ ExitCodeWithFileSizeLimit(rlim_t limit, TBody && body)
   ::waitpid(child, &status, 0);
   return WIFEXITED(status) ? WEXITSTATUS(status) : 100 + (WIFSIGNALED(status) ? WTERMSIG(status) : 0);
 }
+/** A 512 x 512 float image of zeros: 1 MiB of pixel data. */
+itk::Image<float, 2>::Pointer
+ZeroImage512()
+{
+  using ImageType = itk::Image<float, 2>;
+  auto image = ImageType::New();
+  image->SetRegions(ImageType::SizeType{ { 512, 512 } });
+  image->Allocate();
+  image->FillBuffer(0.0f);
+  return image;
+}
 } // namespace
 
 TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
@@ -215,12 +226,8 @@ TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
   // compressed (zeros: a few hundred bytes) into a .nii.gz that looked whole, and a cut energy.csv or report.json was
   // committed as a result
   const std::string dir = TemporaryDirectory();
-  using ImageType = itk::Image<float, 2>;
-  auto image = ImageType::New();
-  image->SetRegions(ImageType::SizeType{ { 512, 512 } });
-  image->Allocate();
-  image->FillBuffer(0.0f);
-  const rlim_t limit = 64 << 10;
+  const auto        image = ZeroImage512();
+  const rlim_t      limit = 64 << 10;
   EXPECT_EQ(ExitCodeWithFileSizeLimit(limit, [&] { dmrtools::WriteImage(image.GetPointer(), dir + "/cut.nii.gz"); }), 0)
     << "a NIfTI file cut short was not an error";
   const std::string text(256 << 10, 'x');
@@ -252,11 +259,7 @@ TEST(ToolOutput, WritesCutShortByAFullDiskThrow)
 TEST(ToolOutput, AShortWriteIsOneMessageWithTheLibrarysReason)
 {
   const std::string dir = TemporaryDirectory();
-  using ImageType = itk::Image<float, 2>;
-  auto image = ImageType::New();
-  image->SetRegions(ImageType::SizeType{ { 512, 512 } });
-  image->Allocate();
-  image->FillBuffer(0.0f);
+  const auto        image = ZeroImage512();
   const std::string stderrFile = dir + "/stderr.txt", messageFile = dir + "/message.txt";
   const pid_t       child = ::fork();
   if (child == 0)
