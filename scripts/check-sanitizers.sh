@@ -2,8 +2,9 @@
 # Builds the project with AddressSanitizer and UndefinedBehaviorSanitizer (CPU only) and runs the CPU tests under
 # them. Not part of CI (the build takes about 30 min on 2 cores); run it after changes to memory handling.
 # Usage: scripts/check-sanitizers.sh [BUILD_DIR]   (default: build-sanitizers next to build/)
-# Two tests cannot run in such a build and are left out: ExampleItkGlobalsOnMainThread preloads a library into the
-# tool (the sanitizer runtime must come first) and InstalledPackageBuildsAndRunsAConsumer builds a consumer without
+# Four tests cannot run in such a build and are left out: ExampleItkGlobalsOnMainThread and ExampleNoTbbThreads preload
+# a library into the tool (the sanitizer runtime must come first), ExampleBadInputThreadLimit limits the tool's virtual
+# memory (the sanitizers reserve terabytes of it) and InstalledPackageBuildsAndRunsAConsumer builds a consumer without
 # the sanitizer runtime.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -18,4 +19,4 @@ cmake -S "$root" -B "$build" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DDMR_USE_CUDA=OF
 cmake --build "$build" -j "$(nproc)"
 export ASAN_OPTIONS=detect_leaks=0:halt_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 ctest --test-dir "$build" -j "$(nproc)" -LE cuda --timeout 600 --output-on-failure \
-  -E '^(ExampleItkGlobalsOnMainThread|InstalledPackageBuildsAndRunsAConsumer)$'
+  -E '^(ExampleItkGlobalsOnMainThread|ExampleNoTbbThreads|ExampleBadInputThreadLimit|InstalledPackageBuildsAndRunsAConsumer)$'
