@@ -21,6 +21,7 @@
 #include <cuda_runtime.h>
 #include <mutex>
 #include <sstream>
+#include <sys/resource.h> // getrlimit (POSIX)
 
 namespace itk
 {
@@ -44,6 +45,15 @@ struct DeviceQuery
     {
       reason = std::string("no usable CUDA device (") + cudaGetErrorString(status) + ")";
       cudaGetLastError(); // clear the sticky error
+      // Under a limit on virtual memory (ulimit -v; a cluster's h_vmem) the runtime cannot reserve its address space
+      // and reports "out of memory", or even "CUDA driver version is insufficient": say that the limit may be why.
+      rlimit limit{};
+      if (getrlimit(RLIMIT_AS, &limit) == 0 && limit.rlim_cur != RLIM_INFINITY)
+      {
+        reason += "; the process's virtual memory is limited to " + std::to_string(limit.rlim_cur >> 20) +
+                  " MiB (ulimit -v), and the CUDA runtime reserves more address space than that, which gives such "
+                  "errors: lift the limit to use the GPU";
+      }
       return;
     }
     if (count == 0)
