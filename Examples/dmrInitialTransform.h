@@ -24,7 +24,6 @@
 // point to its moving point, u_0(x) = T(x) - x.
 #include "itkCompositeTransform.h"
 #include "itkImage.h"
-#include "itkImageToImageFilterCommon.h"
 #include "itkNearestNeighborExtrapolateImageFunction.h"
 #include "itkResampleImageFilter.h"
 #include "itkTransformFactoryBase.h"
@@ -265,11 +264,7 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
     kind = "displacement field";
     field = ReadImageOrDicomSeries<FieldType>(path);
     // on the fixed grid as FEMRegistrationMethod checks it (its tolerances): taken as it is, otherwise resampled
-    if (!itk::dmr::GridMismatch<D>(reference,
-                                   field.GetPointer(),
-                                   itk::ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
-                                   itk::ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance())
-           .empty())
+    if (!itk::dmr::GridMismatchAtDefaultTolerances<D>(reference, field.GetPointer()).empty())
     {
       auto resample = itk::ResampleImageFilter<FieldType, FieldType>::New();
       resample->SetInput(field);

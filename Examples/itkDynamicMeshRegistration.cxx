@@ -862,11 +862,7 @@ Run(const Options & opt)
     values = nullptr;
     // on the fixed grid as FEMRegistrationMethod checks it (its tolerances): taken as it is, otherwise resampled
     // (nearest neighbour), also when its header differs from the fixed image's only by a rounding
-    if (!itk::dmr::GridMismatch<D>(fixed.GetPointer(),
-                                   mask.GetPointer(),
-                                   itk::ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
-                                   itk::ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance())
-           .empty())
+    if (!itk::dmr::GridMismatchAtDefaultTolerances<D>(fixed.GetPointer(), mask.GetPointer()).empty())
     {
       mask = ResampleOnto(mask.GetPointer(), fixed.GetPointer(), true, 0);
     }

@@ -19,6 +19,7 @@
 #define dmrGrid_h
 
 #include "itkImageBase.h"
+#include "itkImageToImageFilterCommon.h"
 #include "itkMultiThreaderBase.h"
 #include <array>
 #include <cmath>
@@ -339,6 +340,19 @@ GridMismatch(const ImageBase<VDimension> * reference,
     why << "its direction differs from " << referenceName << "'s";
   }
   return why.str();
+}
+
+/** GridMismatch at ITK's global default tolerances (ImageToImageFilterCommon): the rule by which
+ * FEMRegistrationMethod takes its fixed mask and initial displacement field, so that a caller that prepares them (the
+ * tool resamples what is off the grid) decides by the very same rule. */
+template <unsigned int VDimension>
+std::string
+GridMismatchAtDefaultTolerances(const ImageBase<VDimension> * reference, const ImageBase<VDimension> * image)
+{
+  return GridMismatch<VDimension>(reference,
+                                  image,
+                                  ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
+                                  ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance());
 }
 
 /** The largest |(D^T D - I)_ij| of the image's direction D: 0 for a rotation or reflection. */

@@ -214,11 +214,7 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
                         "the initial displacement field") })
   {
     const std::string why =
-      image ? dmr::GridMismatch<ImageDimension>(this->GetFixedImage(),
-                                                image,
-                                                ImageToImageFilterCommon::GetGlobalDefaultCoordinateTolerance(),
-                                                ImageToImageFilterCommon::GetGlobalDefaultDirectionTolerance())
-            : std::string();
+      image ? dmr::GridMismatchAtDefaultTolerances<ImageDimension>(this->GetFixedImage(), image) : std::string();
     if (!why.empty())
     {
       itkExceptionMacro(<< name << " must lie on the fixed image grid: " << why);
@@ -284,26 +280,18 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
   const FixedImageType *  fixed = this->GetFixedImage();
   const MovingImageType * moving = this->GetMovingImage();
-  auto                    requireFinite = [this](const char * name, const auto * image) {
-    const auto p = dmr::FirstNonFinitePixel(image);
+  // "the <name> has a non-finite <quantity> (<value>) at index <index>"
+  auto requireFinite = [this](const char * name, const char * quantity, const auto * image) {
+    const auto p = image ? dmr::FirstNonFinitePixel(image) : -1;
     if (p >= 0)
     {
-      itkExceptionMacro("the " << name << " image has a non-finite intensity (" << image->GetBufferPointer()[p]
+      itkExceptionMacro("the " << name << " has a non-finite " << quantity << " (" << image->GetBufferPointer()[p]
                                << ") at index " << image->ComputeIndex(static_cast<OffsetValueType>(p)));
     }
   };
-  requireFinite("fixed", fixed);
-  requireFinite("moving", moving);
-  if (const DisplacementFieldType * initial = this->GetInitialDisplacementField())
-  {
-    const auto p = dmr::FirstNonFinitePixel(initial);
-    if (p >= 0)
-    {
-      itkExceptionMacro("the initial displacement field has a non-finite value ("
-                        << initial->GetBufferPointer()[p] << ") at index "
-                        << initial->ComputeIndex(static_cast<OffsetValueType>(p)));
-    }
-  }
+  requireFinite("fixed image", "intensity", fixed);
+  requireFinite("moving image", "intensity", moving);
+  requireFinite("initial displacement field", "value", this->GetInitialDisplacementField());
   for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
   {
     if (!(range.second > range.first))
