@@ -729,10 +729,16 @@ Run(const Options & opt)
     throw UsageError(std::string("cannot read the input images: ") + e.GetDescription());
   }
   dmrtools::ThrowIfInterrupted();
-  // NaN or infinite intensities, reported at the voxel of the file as read (before any window or resampling)
+  // NaN or infinite intensities, reported at the voxel of the file as read (before any window or resampling); a
+  // header whose coordinates cannot tell the pixels apart (the registration and the resampling below work in them)
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
+    const std::string far = itk::dmr::CoordinatesDoNotResolvePixels<D>(named.second, (named.first + " image").c_str());
+    if (!far.empty())
+    {
+      throw UsageError(far + ": " + (named.first == "fixed" ? opt.fixed : opt.moving));
+    }
     std::string index;
     double      value;
     if (dmrtools::FindNonFiniteVoxel(named.second, index, value))

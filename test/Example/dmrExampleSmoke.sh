@@ -817,6 +817,27 @@ bad-corrupt-header)
   run_reg --fixed "$W/bad-dim.nii" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-dim" --nodes 30 --iterations 2
   check "the message holds the reader's reason ($(cat "$W/stderr"))" grep -q "bad dim\[0\]" "$W/stderr"
   ;;
+bad-far-origin)
+  # a header whose coordinates cannot tell the pixels apart (origin 1e16 mm, 1 mm pixels): the run reported a
+  # "registration" with a folded field (det J down to -5.8) and exit 0; now a usage error that says why. An origin far
+  # out but still fine (1e9 mm) registers.
+  for o in 1e16 1e9; do
+    for f in fixed moving; do
+      { printf 'ObjectType = Image\nNDims = 2\nDimSize = 16 16\nOffset = %s -%s\nElementType = MET_UCHAR\n' $o $o
+        printf 'ElementDataFile = LOCAL\n'
+        awk -v s=$([ $f = fixed ] && echo 0 || echo 1) 'BEGIN { for (y = 0; y < 16; y++) for (x = 0; x < 16; x++)
+          printf "%c", ((x - 7.5 - s) ^ 2 + (y - 7.5) ^ 2 < 20) ? 200 : 20 }'; } >"$W/$f-$o.mha"
+    done
+  done
+  expect_bad_input far-origin --fixed "$W/fixed-1e16.mha" --moving "$W/moving-1e9.mha" --nodes 8 --iterations 2
+  run_reg --fixed "$W/fixed-1e16.mha" --moving "$W/moving-1e16.mha" --output-dir "$W/out-far" --nodes 8 --iterations 2
+  check "far origin: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
+  check "the message says why ($(cat "$W/stderr"))" \
+    grep -q "the fixed image's physical coordinates reach 1e+16 mm, where double precision resolves only 2 mm" \
+    "$W/stderr"
+  run_reg --fixed "$W/fixed-1e9.mha" --moving "$W/moving-1e9.mha" --output-dir "$W/out-1e9" --nodes 24 --iterations 2
+  check "origin 1e9 mm: registers ($(cat "$W/stderr"))" test "$RC" = 0
+  ;;
 bad-thread-limit)
   # a process that may not start the threads it is asked for (here a virtual memory limit below the stacks of 128
   # threads, 8 MiB each; also a container's pids limit or ulimit -u): one line that says so and exit 1. ITK 5.2's thread

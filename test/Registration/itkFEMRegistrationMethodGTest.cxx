@@ -684,6 +684,37 @@ TEST(FEMRegistrationMethod, ParametersThatAreNotFiniteOrFarTooLargeAreRefused)
   EXPECT_NEAR(scaled->GetFinalSSD(), reference->GetFinalSSD(), 1e-6 * reference->GetFinalSSD());
 }
 
+TEST(FEMRegistrationMethod, CoordinatesThatCannotTellThePixelsApartAreRefused)
+{
+  // the same pair moved far from the origin: 1e9 mm registers as at the origin; at 1e16 mm, where double precision
+  // resolves only 2 mm, the run reported a folded field (det J -5.8) with 1 mm pixels, and is refused now
+  auto reference = SmallRegistration(MeshMode::Dynamic, 10);
+  reference->Update();
+  auto movedTo = [](ImageType::Pointer image, double far) {
+    ImageType::PointType origin;
+    origin[0] = far;
+    origin[1] = -far;
+    image->SetOrigin(origin);
+    return image;
+  };
+  auto method = SmallRegistration(MeshMode::Dynamic, 10);
+  method->SetFixedImage(movedTo(Blob(64, 56, 30, 28, 16, 12), 1e9));
+  method->SetMovingImage(movedTo(Blob(64, 56, 34, 27, 12, 12), 1e9));
+  method->Update();
+  EXPECT_NEAR(method->GetFinalSSD(), reference->GetFinalSSD(), 1e-6 * reference->GetFinalSSD());
+  for (const bool inFixed : { true, false })
+  {
+    auto far = SmallRegistration(MeshMode::Dynamic, 10);
+    (inFixed ? far->SetFixedImage(movedTo(Blob(64, 56, 30, 28, 16, 12), 1e16))
+             : far->SetMovingImage(movedTo(Blob(64, 56, 34, 27, 12, 12), 1e16)));
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      far,
+      { "FEMRegistrationMethod",
+        std::string("the ") + (inFixed ? "fixed" : "moving") + " image's physical coordinates reach 1e+16 mm",
+        "resolves only 2 mm" }));
+  }
+}
+
 TEST(FEMRegistrationMethod, ADirectionThatIsNotARotationIsRefused)
 {
   for (const bool inFixed : { true, false })

@@ -25,6 +25,7 @@
 #include <cmath>
 #include <cstdint>
 #include <initializer_list>
+#include <limits>
 #include <algorithm>
 #include <sstream>
 #include <string>
@@ -415,6 +416,56 @@ FirstDirectionNotOrthonormal(std::initializer_list<std::pair<const ImageBase<VDi
     }
   }
   return "";
+}
+
+/** The physical coordinates of an image must tell its pixels apart to this fraction of its smallest spacing. */
+constexpr double CoordinateResolutionTolerance = 1e-5;
+
+/** Why the image's physical coordinates cannot tell its pixels apart (empty if they can): in double precision the
+ * largest coordinate of its box's corners must be exact to CoordinateResolutionTolerance of its smallest spacing. An
+ * origin far from 0 (a header in other units, a corrupt header) otherwise made the registration compute with
+ * coordinates that no longer separate neighbouring pixels: with an origin of 1e16 mm and 1 mm pixels it reported a
+ * "registration" whose field folded (det J down to -5.8), further out a mesh that did not cover the image or "no free
+ * node". name names the image in the reason. */
+template <unsigned int VDimension>
+std::string
+CoordinatesDoNotResolvePixels(const ImageBase<VDimension> * image, const char * name)
+{
+  const auto & region = image->GetLargestPossibleRegion();
+  double       largest = 0.0;
+  for (unsigned int corner = 0; corner < (1u << VDimension); ++corner)
+  {
+    typename ImageBase<VDimension>::IndexType index = region.GetIndex();
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      if ((corner >> k) & 1u)
+      {
+        index[k] += static_cast<IndexValueType>(region.GetSize()[k]) - 1;
+      }
+    }
+    typename ImageBase<VDimension>::PointType point;
+    image->TransformIndexToPhysicalPoint(index, point);
+    for (unsigned int k = 0; k < VDimension; ++k)
+    {
+      largest = std::max(largest, std::abs(point[k]));
+    }
+  }
+  double smallest = std::numeric_limits<double>::infinity();
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    smallest = std::min(smallest, std::abs(image->GetSpacing()[k]));
+  }
+  const double resolution = std::nextafter(largest, std::numeric_limits<double>::infinity()) - largest;
+  if (resolution <= CoordinateResolutionTolerance * smallest)
+  {
+    return "";
+  }
+  std::ostringstream why;
+  why << "the " << name << "'s physical coordinates reach " << largest << " mm, where double precision resolves only "
+      << resolution << " mm, more than " << CoordinateResolutionTolerance << " of its smallest spacing (" << smallest
+      << " mm): the registration's geometry needs finer coordinates; the header's origin (or spacing) is likely "
+      << "wrong, e.g. in other units";
+  return why.str();
 }
 
 } // namespace dmr

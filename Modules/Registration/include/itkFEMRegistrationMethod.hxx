@@ -163,6 +163,16 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
   {
     itkExceptionMacro(<< skew);
   }
+  for (const auto & [image, name] :
+       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedImage()), "fixed image"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  {
+    const std::string why = image ? dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name) : std::string();
+    if (!why.empty())
+    {
+      itkExceptionMacro(<< why);
+    }
+  }
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
   for (unsigned int k = 0; k < ImageDimension; ++k)
