@@ -730,14 +730,19 @@ Run(const Options & opt)
   }
   dmrtools::ThrowIfInterrupted();
   // NaN or infinite intensities, reported at the voxel of the file as read (before any window or resampling); a
-  // header whose coordinates cannot tell the pixels apart (the registration and the resampling below work in them)
+  // header whose coordinates cannot tell the pixels apart (the registration and the resampling below work in them) or
+  // whose spacing the registration's single-precision fields cannot hold
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
-    const std::string far = itk::dmr::CoordinatesDoNotResolvePixels<D>(named.second, (named.first + " image").c_str());
-    if (!far.empty())
+    const std::string name = named.first + " image";
+    for (const std::string & why : { itk::dmr::CoordinatesDoNotResolvePixels<D>(named.second, name.c_str()),
+                                     itk::dmr::SpacingOutsideSinglePrecision<D>(named.second, name.c_str()) })
     {
-      throw UsageError(far + ": " + (named.first == "fixed" ? opt.fixed : opt.moving));
+      if (!why.empty())
+      {
+        throw UsageError(why + ": " + (named.first == "fixed" ? opt.fixed : opt.moving));
+      }
     }
     std::string index;
     double      value;
@@ -1384,7 +1389,9 @@ main(int argc, char * argv[])
       if (components > 1 && !colour)
       {
         throw UsageError("the " + what + " image has " + std::to_string(components) +
-                         " components per pixel; the registration needs scalar (or colour) images: " + path);
+                         " components per pixel and is not an RGB or RGBA colour image; the registration needs "
+                         "scalar images (colour images are read as their luminance): " +
+                         path);
       }
       if (colour)
       {

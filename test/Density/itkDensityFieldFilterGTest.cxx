@@ -22,6 +22,7 @@
 #include "itkShrinkImageFilter.h"
 #include <array>
 #include <cmath>
+#include <tuple>
 #include <vector>
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
@@ -174,6 +175,28 @@ TEST(DensityFieldFilter, BadInputThrows)
     EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
       filter,
       { std::string("the ") + (inFixed ? "fixed" : "moving") + " image's direction matrix is not orthonormal" }));
+  }
+  // geometry that the force cannot be computed in: coordinates that double precision cannot tell apart, a spacing
+  // below what a float resolves (1e-45 mm gave a zero force and density alpha without a word), not a number
+  for (const bool inFixed : { true, false })
+  {
+    for (const auto & [spacing, origin, what] :
+         { std::make_tuple(1.0, 1e16, "physical coordinates reach 1e+16 mm"),
+           std::make_tuple(1e-45, 0.0, "spacing"),
+           std::make_tuple(1.0, std::nan(""), "physical coordinates are not finite") })
+    {
+      auto odd = itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 20, 16 } },
+                                                      Spacing(spacing, spacing),
+                                                      Origin(origin, 0),
+                                                      itk::dmr::test::RotationDirection2D<ImageType>(0.0),
+                                                      Blob(Origin(10 * spacing, 8 * spacing)));
+      auto filter = FilterType::New();
+      filter->SetFixedImage(inFixed ? odd : image);
+      filter->SetMovingImage(inFixed ? image : odd);
+      EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+        filter, { std::string("the ") + (inFixed ? "fixed" : "moving") + " image's " + what }))
+        << spacing << " " << origin;
+    }
   }
   // an alpha beyond single precision (the density's type) or NaN (which passes the clamping setters): every density
   // was infinite or NaN, and only the CVT's refusal of it said something, without the reason

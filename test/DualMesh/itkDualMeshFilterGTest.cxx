@@ -21,6 +21,7 @@
 #include "dmrTestHelpers.h"
 #include "gtest/gtest.h"
 
+#include <cmath>
 #include <map>
 
 namespace
@@ -271,6 +272,22 @@ TEST(DualMeshFilter, BadLabelsThrow)
   labels->SetDirection(sheared);
   labels->Modified();
   EXPECT_NO_THROW(filter->Update());
+
+  // nodes in physical coordinates that double precision cannot tell apart (an origin of 1e16 mm with 1 mm pixels), or
+  // not numbers at all
+  for (const double far : { 1e16, std::nan("") })
+  {
+    LabelImageType::PointType origin;
+    origin[0] = far;
+    origin[1] = 0.0;
+    labels->SetOrigin(origin);
+    labels->Modified();
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      filter,
+      { std::isnan(far) ? "the label image's physical coordinates are not finite numbers"
+                        : "the label image's physical coordinates reach 1e+16 mm" }))
+      << far;
+  }
 }
 /** Nodes on the box border, checked for exact placement and for sliver elements. */
 ::testing::AssertionResult

@@ -838,6 +838,30 @@ bad-far-origin)
   run_reg --fixed "$W/fixed-1e9.mha" --moving "$W/moving-1e9.mha" --output-dir "$W/out-1e9" --nodes 24 --iterations 2
   check "origin 1e9 mm: registers ($(cat "$W/stderr"))" test "$RC" = 0
   ;;
+bad-spacing)
+  # a spacing whose fields a float cannot hold: 1e-45 mm "registered" with exit 0 and moved nothing (det J 1), 3e38 mm
+  # ended in "alpha is -nan"; now a usage error that names the spacing. 1e-30 mm registers.
+  for sp in 1e-45 3e38 1e-30; do
+    for f in fixed moving; do
+      { printf 'ObjectType = Image\nNDims = 2\nDimSize = 16 16\nElementSpacing = %s %s\nElementType = MET_UCHAR\n' $sp $sp
+        printf 'ElementDataFile = LOCAL\n'
+        awk -v s=$([ $f = fixed ] && echo 0 || echo 1) 'BEGIN { for (y = 0; y < 16; y++) for (x = 0; x < 16; x++)
+          printf "%c", ((x - 7.5 - s) ^ 2 + (y - 7.5) ^ 2 < 20) ? 200 : 20 }'; } >"$W/$f-$sp.mha"
+    done
+  done
+  expect_bad_input spacing --fixed "$W/fixed-1e-45.mha" --moving "$W/moving-1e-45.mha" --nodes 24 --iterations 2
+  for sp in 1e-45:1e-45 3e38:3e+38; do
+    run_reg --fixed "$W/fixed-${sp%:*}.mha" --moving "$W/moving-${sp%:*}.mha" --output-dir "$W/out-${sp%:*}" \
+      --nodes 24 --iterations 2
+    check "spacing ${sp%:*} mm: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
+    check "the message names the spacing ($(cat "$W/stderr"))" grep -q \
+      "the fixed image's spacing \[${sp#*:}, ${sp#*:}\] mm .* outside what the registration's single-precision fields" \
+      "$W/stderr"
+  done
+  run_reg --fixed "$W/fixed-1e-30.mha" --moving "$W/moving-1e-30.mha" --output-dir "$W/out-1e-30" --nodes 24 \
+    --iterations 2
+  check "spacing 1e-30 mm: registers ($(cat "$W/stderr"))" test "$RC" = 0
+  ;;
 bad-thread-limit)
   # a process that may not start the threads it is asked for (here a virtual memory limit below the stacks of 128
   # threads, 8 MiB each; also a container's pids limit or ulimit -u): one line that says so and exit 1. ITK 5.2's thread
@@ -888,7 +912,8 @@ bad-components)
   check "the message says why ($(cat "$W/stderr"))" \
     grep -q -- "--truth-displacement must have 2 components per voxel (a displacement field)" "$W/stderr"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$field" --output-dir "$W/out-vector" --nodes 30 --iterations 2
-  check "the message says why ($(cat "$W/stderr"))" grep -q "the moving image has 2 components per pixel" "$W/stderr"
+  check "the message says why ($(cat "$W/stderr"))" grep -q \
+    "the moving image has 2 components per pixel and is not an RGB or RGBA colour image" "$W/stderr"
   # the run's own field is a valid truth field
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$W/out-own-truth" --nodes 30 \
     --iterations 2 --truth-displacement "$field"

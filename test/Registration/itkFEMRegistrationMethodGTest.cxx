@@ -715,6 +715,81 @@ TEST(FEMRegistrationMethod, CoordinatesThatCannotTellThePixelsApartAreRefused)
   }
 }
 
+TEST(FEMRegistrationMethod, SpacingsThatSinglePrecisionCannotHoldAreRefused)
+{
+  // The fields are floats in mm. Spacings of 2^-100 and 2^100 mm (about 8e-31 and 1.3e30) register like 1 mm; a
+  // spacing of 1e-45 mm gave a "registration" that moved nothing (det J 1, SSD unchanged) and 3e38 mm a NaN density.
+  auto reference = SmallRegistration(MeshMode::Dynamic, 20);
+  reference->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+  reference->Update();
+  const auto spaced = [](ImageType::Pointer image, double spacing) {
+    ImageType::SpacingType s;
+    s.Fill(spacing);
+    image->SetSpacing(s);
+    return image;
+  };
+  const size_t n = reference->GetFixedImage()->GetLargestPossibleRegion().GetNumberOfPixels();
+  for (const int exponent : { -100, 100 })
+  {
+    const double spacing = std::ldexp(1.0, exponent);
+    auto         method = SmallRegistration(MeshMode::Dynamic, 20);
+    method->SetFixedImage(spaced(Blob(64, 56, 30, 28, 16, 12), spacing));
+    method->SetMovingImage(spaced(Blob(64, 56, 34, 27, 12, 12), spacing));
+    method->SetBackend(itk::DynamicMeshRegistrationEnums::Backend::CPU);
+    ASSERT_NO_THROW(method->Update()) << exponent;
+    // the same registration in pixel units (a power of two only moves exponents): the field in pixels and the SSD in
+    // the images' area unit agree to rounding
+    const auto * a = reference->GetDisplacementField()->GetBufferPointer();
+    const auto * b = method->GetDisplacementField()->GetBufferPointer();
+    double       largest = 0.0;
+    for (size_t p = 0; p < n; ++p)
+    {
+      for (unsigned int k = 0; k < 2; ++k)
+      {
+        largest = std::max(largest, std::abs(b[p][k] / spacing - a[p][k]));
+      }
+    }
+    EXPECT_LT(largest, 1e-6) << exponent;
+    EXPECT_NEAR(method->GetFinalSSD() / (spacing * spacing), reference->GetFinalSSD(), 1e-6 * reference->GetFinalSSD())
+      << exponent;
+  }
+  EXPECT_LT(reference->GetFinalSSD(), 0.8 * reference->GetHistory().front().ssd); // it registered
+  for (const bool inFixed : { true, false })
+  {
+    for (const double spacing : { 1e-34, 1e-45, 1e33, 3e38 })
+    {
+      auto method = SmallRegistration(MeshMode::Dynamic, 20);
+      (inFixed ? method->SetFixedImage(spaced(Blob(64, 56, 30, 28, 16, 12), spacing))
+               : method->SetMovingImage(spaced(Blob(64, 56, 34, 27, 12, 12), spacing)));
+      EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+        method,
+        { "FEMRegistrationMethod",
+          std::string("the ") + (inFixed ? "fixed" : "moving") + " image's spacing",
+          spacing < 1 ? "is below 1.17" : "makes an extent of",
+          "single-precision fields" }))
+        << spacing;
+    }
+  }
+}
+
+TEST(FEMRegistrationMethod, CoordinatesThatAreNotFiniteAreRefused)
+{
+  // std::max passes over a NaN, so a NaN origin slipped through the check of the coordinates' resolution
+  for (const double bad : { std::nan(""), std::numeric_limits<double>::infinity() })
+  {
+    auto                 method = SmallRegistration(MeshMode::Dynamic, 2);
+    auto                 image = Blob(64, 56, 30, 28, 16, 12);
+    ImageType::PointType origin;
+    origin[0] = 0.0;
+    origin[1] = bad;
+    image->SetOrigin(origin);
+    method->SetMovingImage(image);
+    EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(
+      method, { "FEMRegistrationMethod", "the moving image's physical coordinates are not finite numbers" }))
+      << bad;
+  }
+}
+
 TEST(FEMRegistrationMethod, ADirectionThatIsNotARotationIsRefused)
 {
   for (const bool inFixed : { true, false })

@@ -433,6 +433,7 @@ CoordinatesDoNotResolvePixels(const ImageBase<VDimension> * image, const char * 
 {
   const auto & region = image->GetLargestPossibleRegion();
   double       largest = 0.0;
+  bool         finite = true;
   for (unsigned int corner = 0; corner < (1u << VDimension); ++corner)
   {
     typename ImageBase<VDimension>::IndexType index = region.GetIndex();
@@ -447,13 +448,22 @@ CoordinatesDoNotResolvePixels(const ImageBase<VDimension> * image, const char * 
     image->TransformIndexToPhysicalPoint(index, point);
     for (unsigned int k = 0; k < VDimension; ++k)
     {
+      finite = finite && std::isfinite(point[k]);
       largest = std::max(largest, std::abs(point[k]));
     }
   }
   double smallest = std::numeric_limits<double>::infinity();
   for (unsigned int k = 0; k < VDimension; ++k)
   {
+    finite = finite && std::isfinite(image->GetSpacing()[k]);
     smallest = std::min(smallest, std::abs(image->GetSpacing()[k]));
+  }
+  if (!finite) // std::max and std::min pass over a NaN, so it is looked for on its own
+  {
+    std::ostringstream why;
+    why << "the " << name << "'s physical coordinates are not finite numbers (origin " << image->GetOrigin()
+        << ", spacing " << image->GetSpacing() << "): the header is corrupt";
+    return why.str();
   }
   const double resolution = std::nextafter(largest, std::numeric_limits<double>::infinity()) - largest;
   if (resolution <= CoordinateResolutionTolerance * smallest)
@@ -464,6 +474,44 @@ CoordinatesDoNotResolvePixels(const ImageBase<VDimension> * image, const char * 
   why << "the " << name << "'s physical coordinates reach " << largest << " mm, where double precision resolves only "
       << resolution << " mm, more than " << CoordinateResolutionTolerance << " of its smallest spacing (" << smallest
       << " mm): the registration's geometry needs finer coordinates; the header's origin (or spacing) is likely "
+      << "wrong, e.g. in other units";
+  return why.str();
+}
+
+/** Why single precision cannot hold the image's geometry (empty if it can). The registration keeps its fields, forces
+ * and densities in floats measured in mm: a float must resolve CoordinateResolutionTolerance of the smallest spacing
+ * as a normal number, and the image's extent divided by that tolerance must stay finite, which leaves the squares and
+ * differences of the field's values room. Beyond these bounds a spacing of 1e-45 mm gave a "registration" that moved
+ * nothing with exit 0, and one of 3e38 mm a NaN density. name names the image in the reason. */
+template <unsigned int VDimension>
+std::string
+SpacingOutsideSinglePrecision(const ImageBase<VDimension> * image, const char * name)
+{
+  double smallest = std::numeric_limits<double>::infinity();
+  double extent = 0.0;
+  for (unsigned int k = 0; k < VDimension; ++k)
+  {
+    const double spacing = std::abs(image->GetSpacing()[k]);
+    smallest = std::min(smallest, spacing);
+    extent = std::max(extent, spacing * static_cast<double>(image->GetLargestPossibleRegion().GetSize()[k]));
+  }
+  const double lowest = static_cast<double>(std::numeric_limits<float>::min()) / CoordinateResolutionTolerance;
+  const double highest = static_cast<double>(std::numeric_limits<float>::max()) * CoordinateResolutionTolerance;
+  if (smallest >= lowest && extent <= highest)
+  {
+    return "";
+  }
+  std::ostringstream why;
+  why << "the " << name << "'s spacing " << image->GetSpacing() << " mm ";
+  if (smallest < lowest)
+  {
+    why << "is below " << lowest;
+  }
+  else
+  {
+    why << "makes an extent of " << extent << " mm, above " << highest;
+  }
+  why << " mm, outside what the registration's single-precision fields can hold; the header's spacing is likely "
       << "wrong, e.g. in other units";
   return why.str();
 }

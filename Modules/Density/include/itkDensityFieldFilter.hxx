@@ -95,6 +95,24 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
   {
     itkExceptionMacro(<< skew);
   }
+  // the force is sampled through physical space and kept in floats per mm
+  for (const auto & [image, name] :
+       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(fixed), "fixed image"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  {
+    if (image == nullptr)
+    {
+      continue;
+    }
+    for (const std::string & why : { dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name),
+                                     dmr::SpacingOutsideSinglePrecision<ImageDimension>(image, name) })
+    {
+      if (!why.empty())
+      {
+        itkExceptionMacro(<< why);
+      }
+    }
+  }
 }
 
 template <typename TF, typename TM, typename TD, typename TO>

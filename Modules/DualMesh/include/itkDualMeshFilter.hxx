@@ -63,6 +63,12 @@ DualMeshFilter<TLabelImage, TOutputMesh>::GenerateData()
     {
       itkExceptionMacro(<< skew);
     }
+    // the nodes are placed and triangulated in physical coordinates
+    const std::string far = dmr::CoordinatesDoNotResolvePixels<D>(labels, "label image");
+    if (!far.empty())
+    {
+      itkExceptionMacro(<< far);
+    }
     const auto   grid = dmr::Grid<D>::FromImage(labels);
     const auto * L = labels->GetBufferPointer();
     int64_t      maxLabel = -1;

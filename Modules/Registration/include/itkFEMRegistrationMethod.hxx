@@ -167,10 +167,17 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
        { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedImage()), "fixed image"),
          std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
   {
-    const std::string why = image ? dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name) : std::string();
-    if (!why.empty())
+    if (image == nullptr)
     {
-      itkExceptionMacro(<< why);
+      continue;
+    }
+    for (const std::string & why : { dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name),
+                                     dmr::SpacingOutsideSinglePrecision<ImageDimension>(image, name) })
+    {
+      if (!why.empty())
+      {
+        itkExceptionMacro(<< why);
+      }
     }
   }
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
