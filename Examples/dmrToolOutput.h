@@ -29,9 +29,12 @@
 #include <cerrno>
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <stdexcept>
 #include <string>
+#include <fcntl.h> // open (POSIX)
 #include <signal.h>
+#include <sys/file.h> // flock
 #include <sys/stat.h> // stat (POSIX)
 #include <unistd.h>
 #include <vector>
@@ -117,10 +120,70 @@ struct Staging
   {
     return stage + "/" + name;
   }
+  /** Holds an exclusive flock(2) on the output directory while it lives, so that runs into the same directory commit
+   * one after the other: two runs that ended together renamed their files in turn and could leave a mix of both (the
+   * warped image of one beside the field of the other), and one's removal of stale numbered meshes could take the
+   * other's. A holder that keeps the lock for LockPatience seconds makes the commit fail rather than hang; where the
+   * file system has no such locks (some network file systems) the commit goes on without. */
+  struct DirectoryLock
+  {
+    static constexpr int LockPatience = 120;
+    int                  fd{ -1 };
+    explicit DirectoryLock(const std::string & directory)
+    {
+      fd = ::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+      if (fd < 0)
+      {
+        return;
+      }
+      for (long long waited = 0;; waited += 50)
+      {
+        if (::flock(fd, LOCK_EX | LOCK_NB) == 0)
+        {
+          return;
+        }
+        if (errno != EWOULDBLOCK && errno != EINTR)
+        {
+          Release(); // no locks here
+          return;
+        }
+        if (waited >= 1000LL * LockPatience)
+        {
+          Release();
+          throw std::runtime_error("another process has held the output directory " + directory + " for " +
+                                   std::to_string(LockPatience) + " s while this run waited to move its outputs in");
+        }
+        if (InterruptSignal() != 0)
+        {
+          Release();
+          ThrowIfInterrupted();
+        }
+        ::usleep(50000);
+      }
+    }
+    void
+    Release()
+    {
+      if (fd >= 0)
+      {
+        ::close(fd); // closing the last descriptor releases the lock
+        fd = -1;
+      }
+    }
+    ~DirectoryLock() { Release(); }
+    DirectoryLock(const DirectoryLock &) = delete;
+    DirectoryLock &
+    operator=(const DirectoryLock &) = delete;
+  };
+
+  /** Moves the staged outputs into the directory, then runs afterMove (e.g. the removal of an earlier run's outputs
+   * that this run did not write), both under the directory's lock. */
   void
-  Commit()
+  Commit(const std::function<void()> & afterMove = {})
   {
     ThrowIfInterrupted(); // an interrupted run commits nothing (the destructor removes the staged outputs)
+    const DirectoryLock lock(dir);
+    ThrowIfInterrupted();
     itksys::Directory listing;
     listing.Load(stage);
     for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
@@ -135,6 +198,10 @@ struct Staging
     }
     itksys::SystemTools::RemoveADirectory(stage);
     committed = true;
+    if (afterMove)
+    {
+      afterMove();
+    }
   }
   ~Staging()
   {

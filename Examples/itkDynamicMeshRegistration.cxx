@@ -1338,20 +1338,22 @@ Run(const Options & opt)
       throw std::runtime_error("could not write the report " + opt.report + ": " + e.what());
     }
   }
-  staging.Commit();
   // numbered meshes of an earlier run in D that this run did not write would pass for this run's (a run with
-  // --save-mesh-every 10 and a shorter one after it left mesh_0010.vtu ... beside the new mesh.pvd)
-  itksys::Directory listing;
-  listing.Load(opt.outputDir);
-  for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
-  {
-    const std::string name = listing.GetFile(i);
-    if (dmrtools::IsNumberedMeshName(name) &&
-        std::none_of(meshFiles.begin(), meshFiles.end(), [&](const auto & m) { return m.second == name; }))
+  // --save-mesh-every 10 and a shorter one after it left mesh_0010.vtu ... beside the new mesh.pvd); removed under the
+  // directory's lock, so that a run committing into D at the same time keeps its own
+  staging.Commit([&] {
+    itksys::Directory listing;
+    listing.Load(opt.outputDir);
+    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
     {
-      std::remove((opt.outputDir + "/" + name).c_str());
+      const std::string name = listing.GetFile(i);
+      if (dmrtools::IsNumberedMeshName(name) &&
+          std::none_of(meshFiles.begin(), meshFiles.end(), [&](const auto & m) { return m.second == name; }))
+      {
+        std::remove((opt.outputDir + "/" + name).c_str());
+      }
     }
-  }
+  });
   std::cout << "registered " << opt.moving << " -> " << opt.fixed << " in " << t.total << " s (" << history.size()
             << " iterations, " << meshMode << " mesh, SSD " << ssdInitial << " -> " << method->GetFinalSSD()
             << ", det J in [" << jacobianRange.first << ", " << jacobianRange.second << "])\n"

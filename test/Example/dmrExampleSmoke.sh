@@ -722,6 +722,69 @@ run-again-in-the-same-directory)
     'file="mesh_0001.vtu" file="mesh_0003.vtu" '
   check "files the tool does not write are kept" test -f "$out/notes.txt" -a -f "$out/mesh_final.vtu" -a -f "$out/mesh_12.vtu"
   ;;
+concurrent-commit)
+  # runs into the same D move their outputs in under an exclusive flock(2) on D, one after the other: two runs that
+  # ended together renamed their files in turn (a mix of both could be left) and one's removal of stale numbered meshes
+  # could take the other's. While another process holds D's lock, a finished run waits, then commits all its outputs.
+  out="$W/out"
+  mkdir -p "$out"
+  command -v flock >/dev/null || { echo "flock(1) (util-linux) is missing"; exit 1; }
+  # the holder: flock -o keeps the lock in the flock process only (its command does not inherit it)
+  flock -o "$out" sh -c 'touch "$1/held"; while [ ! -e "$1/release" ]; do sleep 0.05; done' holder "$W" &
+  holder=$!
+  for _ in $(seq 200); do [ -e "$W/held" ] && break; sleep 0.05; done
+  check "the holder has the lock" test -e "$W/held"
+  "$REG" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 3 \
+    --save-mesh-every 1 >"$W/stdout" 2>"$W/stderr" &
+  run=$!
+  # its staging folder holds report.json, the last file written before the commit
+  for _ in $(seq 1200); do
+    if compgen -G "$out/.dmr-partial-*/report.json" >/dev/null || [ -e "$out/report.json" ] ||
+      ! kill -0 "$run" 2>/dev/null; then break; fi
+    sleep 0.05
+  done
+  check "the run staged its report" compgen -G "$out/.dmr-partial-*/report.json"
+  sleep 1
+  check "while D is locked, the finished run has committed nothing ($(cd "$out" && echo *))" \
+    test ! -e "$out/warped.nii.gz" -a ! -e "$out/mesh_0001.vtu" -a ! -e "$out/report.json"
+  check "and waits (still running)" kill -0 "$run"
+  touch "$W/release"
+  wait "$holder"
+  wait "$run"
+  RC=$?
+  cat "$W/stdout" "$W/stderr"
+  check "after the lock is released the run exits 0 (got $RC)" test "$RC" = 0
+  check_run_outputs "$out" 3 dynamic 30
+  check "all its meshes are there" test "$(cd "$out" && echo mesh_[0-9][0-9][0-9][0-9]*.vtu)" = \
+    "mesh_0001.vtu mesh_0002.vtu mesh_0003.vtu"
+  check "no staging folder is left" test -z "$(cd "$out" && compgen -G '.dmr-partial-*')"
+  # SIGTERM while a run waits for the lock: it ends by the signal and D keeps the earlier run's outputs
+  kept=$(snapshot "$out")
+  rm -f "$W/held" "$W/release"
+  flock -o "$out" sh -c 'touch "$1/held"; while [ ! -e "$1/release" ]; do sleep 0.05; done' holder "$W" &
+  holder=$!
+  for _ in $(seq 200); do [ -e "$W/held" ] && break; sleep 0.05; done
+  "$REG" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$out" --nodes 30 --iterations 2 \
+    >"$W/stdout" 2>"$W/stderr" &
+  run=$!
+  for _ in $(seq 1200); do
+    if compgen -G "$out/.dmr-partial-*/report.json" >/dev/null || ! kill -0 "$run" 2>/dev/null; then break; fi
+    sleep 0.05
+  done
+  kill -s TERM "$run"
+  ended=0
+  for _ in $(seq 200); do # at most 10 s
+    kill -0 "$run" 2>/dev/null || { ended=1; break; }
+    sleep 0.05
+  done
+  [ "$ended" = 1 ] || kill -s KILL "$run"
+  wait "$run"
+  rc=$?
+  touch "$W/release"
+  wait "$holder"
+  check "SIGTERM while waiting for the lock: ended within 10 s by the signal (status $rc)" test "$ended$rc" = 1143
+  check "D keeps the earlier run's outputs, nothing staged is left" test "$(snapshot "$out")" = "$kept"
+  ;;
 interrupted)
   # Ctrl-C (SIGINT), SIGTERM (a scheduler's time limit) or SIGHUP during a run: the tool stops at its next step, removes
   # its staged outputs and ends by the signal. Before, the process died at once and left D/.dmr-partial-PID (with the
