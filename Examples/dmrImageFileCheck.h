@@ -175,9 +175,12 @@ Extension(const std::string & path)
   return itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
 }
 
-/** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. */
+/** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. The bytes are
+ * the header's own (dim[1..dim[0]] x bitpix), those of the type stored in the file: ITK reports a NIfTI whose
+ * scl_slope/scl_inter scale the values (common for CT and MR from DICOM converters) as float pixels, which would
+ * make a whole 16-bit file look short. */
 inline void
-CheckNifti(const std::string & path, uint64_t bytes)
+CheckNifti(const std::string & path)
 {
   const std::string ext = Extension(path);
   std::string       header = path, data = path;
@@ -200,19 +203,37 @@ CheckNifti(const std::string & path, uint64_t bytes)
   uint32_t     sizeofHdr = LittleEndian32(p);
   const bool   swap = sizeofHdr != 348 && sizeofHdr != 540;
   auto         word = [&](size_t at) { return swap ? BigEndian32(p + at) : LittleEndian32(p + at); };
+  auto         half = [&](size_t at) {
+    return static_cast<int16_t>(swap ? (p[at] << 8) | p[at + 1] : p[at] | (p[at + 1] << 8));
+  };
+  auto dword = [&](size_t at) {
+    const uint64_t lo = word(swap ? at + 4 : at), hi = word(swap ? at : at + 4);
+    return static_cast<int64_t>((hi << 32) | lo);
+  };
   sizeofHdr = word(0);
-  double offset = 0.0;
+  double  offset = 0.0;
+  int64_t dim[8] = {};
+  int64_t bitsPerPixel = 0;
   if (sizeofHdr == 348)
   {
     const uint32_t bits = word(108);
     float          f;
     std::memcpy(&f, &bits, sizeof f);
     offset = f;
+    for (unsigned int i = 0; i < 8; ++i)
+    {
+      dim[i] = half(40 + 2 * i);
+    }
+    bitsPerPixel = half(72);
   }
   else if (sizeofHdr == 540 && h.size() >= 176)
   {
-    const uint64_t lo = word(swap ? 172 : 168), hi = word(swap ? 168 : 172);
-    offset = static_cast<double>((hi << 32) | lo);
+    offset = static_cast<double>(static_cast<uint64_t>(dword(168)));
+    for (unsigned int i = 0; i < 8; ++i)
+    {
+      dim[i] = dword(16 + 8 * i);
+    }
+    bitsPerPixel = half(14);
   }
   else
   {
@@ -222,7 +243,24 @@ CheckNifti(const std::string & path, uint64_t bytes)
   {
     ThrowTruncated(path, "its NIfTI header has an invalid data offset");
   }
-  RequireBytes(data, static_cast<uint64_t>(offset), bytes, path);
+  if (dim[0] < 1 || dim[0] > 7 || bitsPerPixel <= 0)
+  {
+    return; // an invalid header: the reader says what is wrong with it
+  }
+  uint64_t pixels = 1;
+  for (int64_t i = 1; i <= dim[0]; ++i)
+  {
+    if (dim[i] <= 0 || static_cast<uint64_t>(dim[i]) > (uint64_t{ 1 } << 62) / pixels)
+    {
+      return; // the same
+    }
+    pixels *= static_cast<uint64_t>(dim[i]);
+  }
+  if (pixels > (uint64_t{ 1 } << 60) / static_cast<uint64_t>(bitsPerPixel))
+  {
+    return;
+  }
+  RequireBytes(data, static_cast<uint64_t>(offset), (pixels * static_cast<uint64_t>(bitsPerPixel) + 7) / 8, path);
 }
 
 /** MetaImage: from its "Key = value" header lines, the pixel data of an uncompressed file either follows the
@@ -338,7 +376,7 @@ CheckRawPixelDataIsComplete(const std::string & path, const itk::ImageIOBase * i
   const uint64_t    bytes = static_cast<uint64_t>(io->GetImageSizeInBytes());
   if (name == "NiftiImageIO")
   {
-    detail::CheckNifti(path, bytes);
+    detail::CheckNifti(path);
   }
   else if (name == "MetaImageIO")
   {

@@ -31,6 +31,7 @@
 #include "itkMetaDataObject.h"
 #include "gtest/gtest.h"
 #include <array>
+#include <cstring>
 #include <sstream>
 #include <vector>
 #include <fstream>
@@ -166,6 +167,36 @@ TEST(ImageFileCheck, JpegWithTrailingPaddingPasses)
   WriteTestImage<unsigned char>(path);
   WriteBytes(path, ReadBytes(path) + std::string("\r\n\0\0", 4));
   EXPECT_NO_THROW(CheckFile(path));
+}
+
+TEST(ImageFileCheck, ScaledNiftiIsCheckedByTheTypeItStores)
+{
+  // Regression test (a fixed bug): a 16-bit NIfTI whose scl_slope/scl_inter scale its values, as DICOM converters
+  // write CT (inter -1024) and MR, was refused as truncated: ITK reports such a file as float pixels, twice the bytes
+  // the file stores. The check now takes the size from the header's dim and bitpix.
+  const std::string dir = WorkDir();
+  const std::string path = dir + "/scaled.nii";
+  WriteTestImage<short>(path);
+  std::string bytes = ReadBytes(path);
+  ASSERT_GE(bytes.size(), 352u);
+  const float slope = 2.0f, inter = -1024.0f;
+  std::memcpy(&bytes[112], &slope, sizeof slope);
+  std::memcpy(&bytes[116], &inter, sizeof inter);
+  WriteBytes(path, bytes);
+  EXPECT_NO_THROW(CheckFile(path));
+  const auto image = dmrtools::ReadImageOrDicomSeries<Image2DType>(path);
+  for (unsigned int y = 0; y < 30; y += 7)
+  {
+    for (unsigned int x = 0; x < 40; x += 9)
+    {
+      EXPECT_EQ(image->GetPixel({ { x, y } }), 2.0f * static_cast<float>((x * 7 + y * 13) % 200 + 20) - 1024.0f);
+    }
+  }
+  for (const size_t keep : { bytes.size() - 1, bytes.size() - 40 * 30 })
+  {
+    WriteBytes(path, bytes.substr(0, keep));
+    EXPECT_TRUE(ThrowsTruncated(path)) << "kept " << keep << " of " << bytes.size() << " bytes";
+  }
 }
 
 TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
