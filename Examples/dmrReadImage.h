@@ -43,6 +43,7 @@
 #include "dmrImageFileCheck.h"
 #include "dmrImageMetrics.h"
 #include "dmrToolErrors.h"
+#include "itksys/Directory.hxx"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
 #include <cstdio>
@@ -51,6 +52,11 @@
 #include <sstream>
 #include <string>
 #include <vector>
+#include <unistd.h>
+#include <sys/stat.h>
+#include <fstream>
+#include <cstdlib>
+#include <cstring>
 
 namespace dmrtools
 {
@@ -75,21 +81,173 @@ InitializeItkGlobals()
   itk::BuildInformation::GetInstance();                                  // BuildInformationGlobals
 }
 
+namespace detail
+{
+/** Whether path is a regular file that starts like a DICOM file: the Part 10 preamble ("DICM" at byte 128), or, for
+ * files written without it (ACR-NEMA style), a first element of group 0002 or 0008 in either byte order. Files
+ * shorter than the preamble and files that are not regular (devices, FIFOs, /proc entries of size 0) are not read. */
+inline bool
+LooksLikeDicomFile(const std::string & path)
+{
+  struct stat info;
+  if (stat(path.c_str(), &info) != 0 || !S_ISREG(info.st_mode) || info.st_size < 132)
+  {
+    return false;
+  }
+  std::ifstream in(path, std::ios::binary);
+  char          head[132];
+  if (!in.read(head, sizeof head))
+  {
+    return false;
+  }
+  const auto * u = reinterpret_cast<const unsigned char *>(head);
+  if (std::memcmp(head + 128, "DICM", 4) == 0)
+  {
+    return true;
+  }
+  const unsigned little = u[0] | (u[1] << 8), big = (u[0] << 8) | u[1];
+  return little == 0x0002 || little == 0x0008 || big == 0x0002 || big == 0x0008;
+}
+
+/** The entries of directory (no "." and ".."), sorted; empty when it cannot be listed. */
+inline std::vector<std::string>
+DirectoryEntries(const std::string & directory)
+{
+  std::vector<std::string> entries;
+  itksys::Directory        listing;
+  if (listing.Load(directory))
+  {
+    for (unsigned long i = 0; i < listing.GetNumberOfFiles(); ++i)
+    {
+      const std::string name = listing.GetFile(i);
+      if (name != "." && name != "..")
+      {
+        entries.push_back(name);
+      }
+    }
+  }
+  std::sort(entries.begin(), entries.end());
+  return entries;
+}
+
+/** Folders below directory (breadth first, at most 4 levels and 64 folders looked at, symbolic links to folders not
+ * followed) that hold a file that looks like DICOM: where a DICOM export (CD, PACS) keeps its series. */
+inline std::vector<std::string>
+FoldersWithDicomFilesBelow(const std::string & directory)
+{
+  std::vector<std::string> found, queue{ directory };
+  std::vector<int>         depth{ 0 };
+  for (size_t at = 0; at < queue.size() && at < 64; ++at)
+  {
+    bool dicom = false;
+    for (const auto & name : DirectoryEntries(queue[at]))
+    {
+      const std::string child = queue[at] + "/" + name;
+      if (itksys::SystemTools::FileIsDirectory(child))
+      {
+        if (depth[at] < 4 && !itksys::SystemTools::FileIsSymlink(child))
+        {
+          queue.push_back(child);
+          depth.push_back(depth[at] + 1);
+        }
+      }
+      else if (at > 0 && !dicom && LooksLikeDicomFile(child))
+      {
+        dicom = true;
+        found.push_back(queue[at]);
+      }
+    }
+  }
+  return found;
+}
+} // namespace detail
+
 /** Slice files of the one DICOM series in directory, ordered by position. Throws when there is none, and when there
  * are several: picking one of them (GDCM's first) registered another volume than the user meant without a word, e.g.
  * every other slice of a directory where two series are mixed. GDCM tells series apart by Series Instance UID and,
  * with its series details, by size, orientation and slice thickness, so a series whose slices differ there is
- * refused too. */
+ * refused too. GDCM reads only the files that look like DICOM (detail::LooksLikeDicomFile): Debian's GDCM asserts,
+ * aborting the process, on some other files (an 8-byte text file "Etc/UTC" does it), and would wait forever on a
+ * FIFO. When other files are present, it scans a temporary folder of links to the DICOM ones. */
 inline std::vector<std::string>
 DicomSeriesFileNames(const std::string & directory)
 {
+  std::string base = directory;
+  while (base.size() > 1 && base.back() == '/')
+  {
+    base.pop_back();
+  }
+  std::vector<std::string> dicom;
+  bool                     others = false;
+  for (const auto & name : detail::DirectoryEntries(base))
+  {
+    const std::string path = base + "/" + name;
+    if (detail::LooksLikeDicomFile(path))
+    {
+      dicom.push_back(name);
+    }
+    else if (!itksys::SystemTools::FileIsDirectory(path))
+    {
+      others = true;
+    }
+  }
+  if (dicom.empty())
+  {
+    const auto         folders = detail::FoldersWithDicomFilesBelow(base);
+    std::ostringstream where;
+    for (size_t i = 0; i < folders.size() && i < 4; ++i)
+    {
+      where << (i ? ", " : "") << folders[i];
+    }
+    itkGenericExceptionMacro(<< "directory holds no DICOM series: " << directory
+                             << (folders.empty() ? std::string()
+                                                 : "; its subdirectories hold DICOM files, give the folder of the "
+                                                   "series to register: " +
+                                                     where.str() + (folders.size() > 4 ? ", ..." : "")));
+  }
+  // the folder GDCM scans: directory itself, or links to its DICOM files only
+  std::string scanned = base, links;
+  if (others)
+  {
+    const char *      tmp = std::getenv("TMPDIR");
+    std::vector<char> pattern;
+    const std::string templ = std::string(tmp && *tmp ? tmp : "/tmp") + "/dmr-dicom-XXXXXX";
+    pattern.assign(templ.begin(), templ.end());
+    pattern.push_back('\0');
+    if (mkdtemp(pattern.data()))
+    {
+      links = pattern.data();
+      bool linked = true;
+      for (const auto & name : dicom)
+      {
+        const std::string target = itksys::SystemTools::CollapseFullPath(base + "/" + name);
+        linked = linked && symlink(target.c_str(), (links + "/" + name).c_str()) == 0;
+      }
+      if (linked)
+      {
+        scanned = links;
+      }
+    }
+  }
+  struct RemoveLinks
+  {
+    std::string folder;
+    ~RemoveLinks()
+    {
+      if (!folder.empty())
+      {
+        itksys::SystemTools::RemoveADirectory(folder);
+      }
+    }
+  } removeLinks{ links };
   auto names = itk::GDCMSeriesFileNames::New();
   names->SetUseSeriesDetails(true);
-  names->SetDirectory(directory);
+  names->SetDirectory(scanned);
   const auto uids = names->GetSeriesUIDs();
   if (uids.empty())
   {
-    itkGenericExceptionMacro(<< "directory holds no DICOM series: " << directory);
+    itkGenericExceptionMacro(<< "directory holds no DICOM series: " << directory << " (" << dicom.size()
+                             << " of its files look like DICOM, none is a slice of an image series)");
   }
   if (uids.size() > 1)
   {
@@ -111,6 +269,13 @@ DicomSeriesFileNames(const std::string & directory)
   if (files.empty())
   {
     itkGenericExceptionMacro(<< "DICOM series without files in " << directory);
+  }
+  if (scanned != base)
+  {
+    for (auto & file : files) // the links' names are the files' names in directory
+    {
+      file = base + "/" + itksys::SystemTools::GetFilenameName(file);
+    }
   }
   return files;
 }

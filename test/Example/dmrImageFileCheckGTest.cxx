@@ -34,6 +34,7 @@
 #include <cstring>
 #include <sstream>
 #include <vector>
+#include <sys/stat.h>
 #include <fstream>
 #include <string>
 
@@ -297,5 +298,37 @@ TEST(ImageFileCheck, DicomSeriesMustStackItsSlicesEvenlyAlongTheirNormal)
   EXPECT_NE(message(dir + "/missing").find("has a missing slice or uneven slice positions"), std::string::npos)
     << message(dir + "/missing");
   EXPECT_NE(message(dir + "/sheared").find("is sheared"), std::string::npos) << message(dir + "/sheared");
+  // a folder whose series lie in subfolders (as DICOM exports keep them) names those that hold one
+  WriteDicomSeries(dir + "/export/patient/study/series1", even);
+  itksys::SystemTools::MakeDirectory(dir + "/export/patient/notes");
+  const std::string outer = message(dir + "/export");
+  EXPECT_NE(outer.find("holds no DICOM series: " + dir + "/export; its subdirectories hold DICOM files"),
+            std::string::npos)
+    << outer;
+  EXPECT_NE(outer.find(dir + "/export/patient/study/series1"), std::string::npos) << outer;
+  EXPECT_EQ(outer.find("notes"), std::string::npos) << outer;
+  const std::string empty = message(dir + "/export/patient/notes");
+  EXPECT_NE(empty.find("holds no DICOM series"), std::string::npos) << empty;
+  EXPECT_EQ(empty.find("subdirectories"), std::string::npos) << empty;
+  // other files beside the slices: an 8-byte text file on which Debian's GDCM asserted (the process aborted), a
+  // FIFO that GDCM would have waited on forever, a short file and a hidden one; the series is read from its own files
+  WriteBytes(dir + "/even/timezone", "Etc/UTC\n");
+  WriteBytes(dir + "/even/short", "DICM");
+  WriteBytes(dir + "/even/.DS_Store", std::string(300, '\1'));
+  ASSERT_EQ(mkfifo((dir + "/even/pipe").c_str(), 0600), 0);
+  const auto files = dmrtools::DicomSeriesFileNames(dir + "/even");
+  ASSERT_EQ(files.size(), 10u);
+  for (const auto & file : files)
+  {
+    EXPECT_EQ(itksys::SystemTools::GetFilenamePath(file), dir + "/even");
+    EXPECT_TRUE(itksys::SystemTools::FileExists(file, true)) << file;
+  }
+  const auto again = dmrtools::ReadImageOrDicomSeries<CTType>(dir + "/even");
+  EXPECT_EQ(again->GetLargestPossibleRegion().GetSize(), (itk::Size<3>{ { 16, 12, 10 } }));
+  EXPECT_EQ(again->GetPixel({ { 3, 2, 9 } }), volume->GetPixel({ { 3, 2, 9 } }));
+  const std::string onlyText = dir + "/text";
+  itksys::SystemTools::MakeDirectory(onlyText);
+  WriteBytes(onlyText + "/timezone", "Etc/UTC\n");
+  EXPECT_NE(message(onlyText).find("holds no DICOM series"), std::string::npos) << message(onlyText);
   itksys::SystemTools::RemoveADirectory(dir);
 }
