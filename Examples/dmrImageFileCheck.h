@@ -175,12 +175,48 @@ Extension(const std::string & path)
   return itksys::SystemTools::LowerCase(itksys::SystemTools::GetFilenameLastExtension(path));
 }
 
+/** Bytes per voxel of a NIfTI datatype code, as the NIfTI library sizes it (bitpix is not used there); 0 for a code
+ * it does not know. DT_BINARY (1) is not sized in bytes either. */
+inline uint64_t
+NiftiBytesPerVoxel(int datatype)
+{
+  switch (datatype)
+  {
+    case 2:   // uint8
+    case 256: // int8
+      return 1;
+    case 4:   // int16
+    case 512: // uint16
+      return 2;
+    case 128: // RGB24
+      return 3;
+    case 8:    // int32
+    case 16:   // float32
+    case 768:  // uint32
+    case 2304: // RGBA32
+      return 4;
+    case 32:   // complex64
+    case 64:   // float64
+    case 1024: // int64
+    case 1280: // uint64
+      return 8;
+    case 1536: // float128
+    case 1792: // complex128
+      return 16;
+    case 2048: // complex256
+      return 32;
+    default:
+      return 0;
+  }
+}
+
 /** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. The bytes are
- * the header's own (dim[1..dim[0]] x bitpix), those of the type stored in the file: ITK reports a NIfTI whose
- * scl_slope/scl_inter scale the values (common for CT and MR from DICOM converters) as float pixels, which would
- * make a whole 16-bit file look short. */
+ * the header's own (dim[1..dim[0]] x the size of its datatype), those of the type stored in the file: ITK reports a
+ * NIfTI whose scl_slope/scl_inter scale the values (common for CT and MR from DICOM converters) as float pixels,
+ * which would make a whole 16-bit file look short. A header whose size cannot be told that way (an unknown datatype,
+ * dims the NIfTI library corrects) is checked against itkBytes, the size ITK reports. */
 inline void
-CheckNifti(const std::string & path)
+CheckNifti(const std::string & path, uint64_t itkBytes)
 {
   const std::string ext = Extension(path);
   std::string       header = path, data = path;
@@ -213,7 +249,7 @@ CheckNifti(const std::string & path)
   sizeofHdr = word(0);
   double  offset = 0.0;
   int64_t dim[8] = {};
-  int64_t bitsPerPixel = 0;
+  int     datatype = 0;
   if (sizeofHdr == 348)
   {
     const uint32_t bits = word(108);
@@ -224,7 +260,7 @@ CheckNifti(const std::string & path)
     {
       dim[i] = half(40 + 2 * i);
     }
-    bitsPerPixel = half(72);
+    datatype = half(70);
   }
   else if (sizeofHdr == 540 && h.size() >= 176)
   {
@@ -233,7 +269,7 @@ CheckNifti(const std::string & path)
     {
       dim[i] = dword(16 + 8 * i);
     }
-    bitsPerPixel = half(14);
+    datatype = half(12);
   }
   else
   {
@@ -243,24 +279,17 @@ CheckNifti(const std::string & path)
   {
     ThrowTruncated(path, "its NIfTI header has an invalid data offset");
   }
-  if (dim[0] < 1 || dim[0] > 7 || bitsPerPixel <= 0)
+  uint64_t       bytes = NiftiBytesPerVoxel(datatype);
+  const uint64_t limit = uint64_t{ 1 } << 62;
+  if (dim[0] < 1 || dim[0] > 7)
   {
-    return; // an invalid header: the reader says what is wrong with it
+    bytes = 0;
   }
-  uint64_t pixels = 1;
-  for (int64_t i = 1; i <= dim[0]; ++i)
+  for (int64_t i = 1; bytes > 0 && i <= dim[0]; ++i)
   {
-    if (dim[i] <= 0 || static_cast<uint64_t>(dim[i]) > (uint64_t{ 1 } << 62) / pixels)
-    {
-      return; // the same
-    }
-    pixels *= static_cast<uint64_t>(dim[i]);
+    bytes = dim[i] > 0 && static_cast<uint64_t>(dim[i]) <= limit / bytes ? bytes * static_cast<uint64_t>(dim[i]) : 0;
   }
-  if (pixels > (uint64_t{ 1 } << 60) / static_cast<uint64_t>(bitsPerPixel))
-  {
-    return;
-  }
-  RequireBytes(data, static_cast<uint64_t>(offset), (pixels * static_cast<uint64_t>(bitsPerPixel) + 7) / 8, path);
+  RequireBytes(data, static_cast<uint64_t>(offset), bytes > 0 ? bytes : itkBytes, path);
 }
 
 /** MetaImage: from its "Key = value" header lines, the pixel data of an uncompressed file either follows the
@@ -376,7 +405,7 @@ CheckRawPixelDataIsComplete(const std::string & path, const itk::ImageIOBase * i
   const uint64_t    bytes = static_cast<uint64_t>(io->GetImageSizeInBytes());
   if (name == "NiftiImageIO")
   {
-    detail::CheckNifti(path);
+    detail::CheckNifti(path, bytes);
   }
   else if (name == "MetaImageIO")
   {

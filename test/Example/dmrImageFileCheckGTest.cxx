@@ -198,6 +198,12 @@ TEST(ImageFileCheck, ScaledNiftiIsCheckedByTheTypeItStores)
     WriteBytes(path, bytes.substr(0, keep));
     EXPECT_TRUE(ThrowsTruncated(path)) << "kept " << keep << " of " << bytes.size() << " bytes";
   }
+  // the NIfTI library sizes a voxel by its datatype, not by bitpix: a wrong bitpix does not make the file short
+  std::string   wrongBitpix = bytes;
+  const int16_t bitpix = 32;
+  std::memcpy(&wrongBitpix[72], &bitpix, sizeof bitpix);
+  WriteBytes(path, wrongBitpix);
+  EXPECT_NO_THROW(CheckFile(path));
 }
 
 TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
