@@ -28,6 +28,7 @@
 #include "itkTransformFileWriter.h"
 #include "itkTranslationTransform.h"
 #include "gtest/gtest.h"
+#include "itksys/SystemTools.hxx"
 #include <fstream>
 #include <limits>
 
@@ -39,8 +40,13 @@ using FieldType = itk::Image<itk::Vector<float, 3>, 3>;
 std::string
 Path(const std::string & name)
 {
-  static const std::string dir = dmrtools::test::TemporaryDirectory("dmrInitialTransformGTest");
-  return dir + "/" + name;
+  // one folder for the whole run, removed when the test program ends
+  static const struct Folder
+  {
+    std::string path = dmrtools::test::TemporaryDirectory("dmrInitialTransformGTest");
+    ~Folder() { itksys::SystemTools::RemoveADirectory(path); }
+  } folder;
+  return folder.path + "/" + name;
 }
 
 /** The fixed grid: 20 x 16 x 12, spacing 0.9 x 1.1 x 2.0, an origin and a rotated direction. */
