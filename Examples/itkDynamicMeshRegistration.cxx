@@ -735,14 +735,10 @@ Run(const Options & opt)
   for (const auto & named : { std::make_pair(std::string("fixed"), fixed.GetPointer()),
                               std::make_pair(std::string("moving"), moving.GetPointer()) })
   {
-    const std::string name = named.first + " image";
-    for (const std::string & why : { itk::dmr::CoordinatesDoNotResolvePixels<D>(named.second, name.c_str()),
-                                     itk::dmr::SpacingOutsideSinglePrecision<D>(named.second, name.c_str()) })
+    const std::string geometry = itk::dmr::GeometryOutsidePrecision<D>(named.second, (named.first + " image").c_str());
+    if (!geometry.empty())
     {
-      if (!why.empty())
-      {
-        throw UsageError(why + ": " + (named.first == "fixed" ? opt.fixed : opt.moving));
-      }
+      throw UsageError(geometry + ": " + (named.first == "fixed" ? opt.fixed : opt.moving));
     }
     std::string index;
     double      value;

@@ -516,6 +516,34 @@ SpacingOutsideSinglePrecision(const ImageBase<VDimension> * image, const char * 
   return why.str();
 }
 
+/** Why the image's geometry is one the registration cannot compute in (empty if it is not): its physical
+ * coordinates do not tell its pixels apart (CoordinatesDoNotResolvePixels) or single precision cannot hold its
+ * spacing (SpacingOutsideSinglePrecision). name names the image in the reason. */
+template <unsigned int VDimension>
+std::string
+GeometryOutsidePrecision(const ImageBase<VDimension> * image, const char * name)
+{
+  const std::string far = CoordinatesDoNotResolvePixels<VDimension>(image, name);
+  return far.empty() ? SpacingOutsideSinglePrecision<VDimension>(image, name) : far;
+}
+
+/** Why a registration's fixed and moving images (either may be null, and is then skipped) have a geometry it cannot
+ * compute in (empty if they have none): a direction that is not a rotation (FirstDirectionNotOrthonormal), then
+ * GeometryOutsidePrecision, the fixed image first. */
+template <unsigned int VDimension>
+std::string
+FixedAndMovingGeometryProblem(const ImageBase<VDimension> * fixed, const ImageBase<VDimension> * moving)
+{
+  const std::string skew =
+    FirstDirectionNotOrthonormal<VDimension>({ { fixed, "fixed image" }, { moving, "moving image" } });
+  if (!skew.empty())
+  {
+    return skew;
+  }
+  const std::string fixedWhy = fixed ? GeometryOutsidePrecision<VDimension>(fixed, "fixed image") : std::string();
+  return !fixedWhy.empty() || !moving ? fixedWhy : GeometryOutsidePrecision<VDimension>(moving, "moving image");
+}
+
 } // namespace dmr
 } // namespace itk
 

@@ -89,29 +89,11 @@ DensityFieldFilter<TF, TM, TD, TO>::VerifyInputInformation() ITKv5_CONST
   };
   checkOnFixedGrid(this->GetDisplacementField(), "displacement field");
   checkOnFixedGrid(this->GetFixedMask(), "fixed mask");
-  const std::string skew = dmr::FirstDirectionNotOrthonormal<ImageDimension>(
-    { { fixed, "fixed image" }, { this->GetMovingImage(), "moving image" } });
-  if (!skew.empty())
-  {
-    itkExceptionMacro(<< skew);
-  }
   // the force is sampled through physical space and kept in floats per mm
-  for (const auto & [image, name] :
-       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(fixed), "fixed image"),
-         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
+  const std::string geometry = dmr::FixedAndMovingGeometryProblem<ImageDimension>(fixed, this->GetMovingImage());
+  if (!geometry.empty())
   {
-    if (image == nullptr)
-    {
-      continue;
-    }
-    for (const std::string & why : { dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name),
-                                     dmr::SpacingOutsideSinglePrecision<ImageDimension>(image, name) })
-    {
-      if (!why.empty())
-      {
-        itkExceptionMacro(<< why);
-      }
-    }
+    itkExceptionMacro(<< geometry);
   }
 }
 

@@ -157,28 +157,11 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
 {
   Superclass::VerifyInputInformation();
-  const std::string skew = dmr::FirstDirectionNotOrthonormal<ImageDimension>(
-    { { this->GetFixedImage(), "fixed image" }, { this->GetMovingImage(), "moving image" } });
-  if (!skew.empty())
+  const std::string geometry =
+    dmr::FixedAndMovingGeometryProblem<ImageDimension>(this->GetFixedImage(), this->GetMovingImage());
+  if (!geometry.empty())
   {
-    itkExceptionMacro(<< skew);
-  }
-  for (const auto & [image, name] :
-       { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedImage()), "fixed image"),
-         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetMovingImage()), "moving image") })
-  {
-    if (image == nullptr)
-    {
-      continue;
-    }
-    for (const std::string & why : { dmr::CoordinatesDoNotResolvePixels<ImageDimension>(image, name),
-                                     dmr::SpacingOutsideSinglePrecision<ImageDimension>(image, name) })
-    {
-      if (!why.empty())
-      {
-        itkExceptionMacro(<< why);
-      }
-    }
+    itkExceptionMacro(<< geometry);
   }
   const auto    size = this->GetFixedImage()->GetLargestPossibleRegion().GetSize();
   SizeValueType pixels = 1;
