@@ -44,6 +44,15 @@ is_number() { [[ $1 =~ ^-?[0-9]+(\.[0-9]*)?([eE][-+]?[0-9]+)?$ ]]; }
 awk_true() { awk "BEGIN { exit !($1) }"; }
 # listing (names, sizes, checksums) of a directory tree, hidden files included
 snapshot() { (cd "$1" && find . -mindepth 1 -printf '%y %p %s\n' | sort && find . -type f -exec md5sum {} + | sort); }
+# end_within PID TRIES STEP: wait up to TRIES x STEP seconds for PID to end; ended=1 if it did, else it is killed
+end_within() {
+  ended=0
+  for _ in $(seq "$2"); do
+    kill -0 "$1" 2>/dev/null || { ended=1; return; }
+    sleep "$3"
+  done
+  kill -s KILL "$1"
+}
 
 for tool in "$REG" "$GEN" "$DICE" "$CHECK"; do
   [ -x "$tool" ] || { echo "not an executable: $tool"; exit 1; }
@@ -772,12 +781,7 @@ concurrent-commit)
     sleep 0.05
   done
   kill -s TERM "$run"
-  ended=0
-  for _ in $(seq 200); do # at most 10 s
-    kill -0 "$run" 2>/dev/null || { ended=1; break; }
-    sleep 0.05
-  done
-  [ "$ended" = 1 ] || kill -s KILL "$run"
+  end_within "$run" 200 0.05 # at most 10 s
   wait "$run"
   rc=$?
   touch "$W/release"
@@ -813,12 +817,7 @@ interrupted)
       # the same request delivered twice at once (as `timeout` does, to the process and to its process group): before,
       # the second one ended the process by the default action and left its staged outputs behind
       kill -s "$sig" "$pid" 2>/dev/null
-      ended=0
-      for _ in $(seq 300); do # at most 30 s
-        kill -0 "$pid" 2>/dev/null || { ended=1; break; }
-        sleep 0.1
-      done
-      [ "$ended" = 1 ] || kill -s KILL "$pid"
+      end_within "$pid" 300 0.1 # at most 30 s
       wait "$pid"
       rc=$?
       echo "[SIG$sig into $(basename "$out")] exit $rc, stderr: $(cat "$W/stderr")"
