@@ -44,6 +44,13 @@ is_number() { [[ $1 =~ ^-?[0-9]+(\.[0-9]*)?([eE][-+]?[0-9]+)?$ ]]; }
 awk_true() { awk "BEGIN { exit !($1) }"; }
 # listing (names, sizes, checksums) of a directory tree, hidden files included
 snapshot() { (cd "$1" && find . -mindepth 1 -printf '%y %p %s\n' | sort && find . -type f -exec md5sum {} + | sort); }
+# disk_mha PATH SHIFT HEADER_LINE: a 16 x 16 MetaImage of a disk (200 on 20) shifted by SHIFT pixels in x, with one
+# more header line (e.g. its offset or spacing)
+disk_mha() {
+  { printf 'ObjectType = Image\nNDims = 2\nDimSize = 16 16\n%s\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n' "$3"
+    awk -v s="$2" 'BEGIN { for (y = 0; y < 16; y++) for (x = 0; x < 16; x++)
+      printf "%c", ((x - 7.5 - s) ^ 2 + (y - 7.5) ^ 2 < 20) ? 200 : 20 }'; } >"$1"
+}
 # end_within PID TRIES STEP: wait up to TRIES x STEP seconds for PID to end; ended=1 if it did, else it is killed
 end_within() {
   ended=0
@@ -884,12 +891,8 @@ bad-far-origin)
   # "registration" with a folded field (det J down to -5.8) and exit 0; now a usage error that says why. An origin far
   # out but still fine (1e9 mm) registers.
   for o in 1e16 1e9; do
-    for f in fixed moving; do
-      { printf 'ObjectType = Image\nNDims = 2\nDimSize = 16 16\nOffset = %s -%s\nElementType = MET_UCHAR\n' $o $o
-        printf 'ElementDataFile = LOCAL\n'
-        awk -v s=$([ $f = fixed ] && echo 0 || echo 1) 'BEGIN { for (y = 0; y < 16; y++) for (x = 0; x < 16; x++)
-          printf "%c", ((x - 7.5 - s) ^ 2 + (y - 7.5) ^ 2 < 20) ? 200 : 20 }'; } >"$W/$f-$o.mha"
-    done
+    disk_mha "$W/fixed-$o.mha" 0 "Offset = $o -$o"
+    disk_mha "$W/moving-$o.mha" 1 "Offset = $o -$o"
   done
   expect_bad_input far-origin --fixed "$W/fixed-1e16.mha" --moving "$W/moving-1e9.mha" --nodes 8 --iterations 2
   run_reg --fixed "$W/fixed-1e16.mha" --moving "$W/moving-1e16.mha" --output-dir "$W/out-far" --nodes 8 --iterations 2
@@ -904,12 +907,8 @@ bad-spacing)
   # a spacing whose fields a float cannot hold: 1e-45 mm "registered" with exit 0 and moved nothing (det J 1), 3e38 mm
   # ended in "alpha is -nan"; now a usage error that names the spacing. 1e-30 mm registers.
   for sp in 1e-45 3e38 1e-30; do
-    for f in fixed moving; do
-      { printf 'ObjectType = Image\nNDims = 2\nDimSize = 16 16\nElementSpacing = %s %s\nElementType = MET_UCHAR\n' $sp $sp
-        printf 'ElementDataFile = LOCAL\n'
-        awk -v s=$([ $f = fixed ] && echo 0 || echo 1) 'BEGIN { for (y = 0; y < 16; y++) for (x = 0; x < 16; x++)
-          printf "%c", ((x - 7.5 - s) ^ 2 + (y - 7.5) ^ 2 < 20) ? 200 : 20 }'; } >"$W/$f-$sp.mha"
-    done
+    disk_mha "$W/fixed-$sp.mha" 0 "ElementSpacing = $sp $sp"
+    disk_mha "$W/moving-$sp.mha" 1 "ElementSpacing = $sp $sp"
   done
   expect_bad_input spacing --fixed "$W/fixed-1e-45.mha" --moving "$W/moving-1e-45.mha" --nodes 24 --iterations 2
   for sp in 1e-45:1e-45 3e38:3e+38; do
