@@ -19,17 +19,20 @@
 #define dmrImageFileCheck_h
 
 // Is an image file whole? ITK 5.2's readers do not all notice a file that ends early: an uncompressed NIfTI,
-// MetaImage or VTK file, a JPEG or a BMP is read as far as it goes and the rest left as it was (zeros or garbage), and
-// a PNG cut within its first chunks makes libpng abort the process. The tools check these formats themselves, from the
-// sizes their headers give, and refuse a short file with one line. (A .gz file is checked to its trailer separately;
-// NRRD and TIFF files that end early are errors in ITK already.)
+// MetaImage or VTK file, a JPEG, a BMP or a DICOM file is read as far as it goes and the rest left as it was (zeros or
+// garbage), and a PNG cut within its first chunks makes libpng abort the process. The tools check these formats
+// themselves, from the sizes their headers give, and refuse a short file with one line. (A .gz file is checked to its
+// trailer separately; NRRD and TIFF files that end early are errors in ITK already.)
 #include "itkImageIOBase.h"
 #include "itkMacro.h"
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
 #include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <iterator>
 #include <string>
 
 namespace dmrtools
@@ -370,6 +373,466 @@ CheckVtk(const std::string & path, uint64_t bytes)
     }
   }
 }
+
+/** A walk over a DICOM file's data elements (DICOM PS3.5 section 7), far enough to tell whether the file holds every
+ * byte its elements describe. GDCM does not tell: a slice cut short is read with the declared length of its Pixel
+ * Data, the missing part zeros, so a series with one slice cut by an interrupted transfer was registered with half of
+ * that slice at -1024 HU and no error. The walk follows the encodings a CT or MR file uses (explicit and implicit VR
+ * little endian, explicit big endian, sequences and items of defined and undefined length, encapsulated pixel data);
+ * where it meets anything else (a deflated data set, an unknown VR, a tag out of place) it gives no verdict and leaves
+ * the file to GDCM, so an unusual but readable file is never refused by it. */
+struct DicomWalk
+{
+  static constexpr uint32_t Undefined = 0xFFFFFFFFu;
+
+  std::ifstream in;
+  uint64_t      size = 0;
+  bool          little = true;
+  bool          explicitVR = true;
+  std::string   problem;           // what is missing or wrong, when the walk found it
+  bool          noVerdict = false; // an encoding the walk does not follow
+  // the top-level image attributes
+  uint64_t rows = 0, columns = 0, samples = 1, bitsAllocated = 0, frames = 1;
+  bool     pixelData = false, encapsulated = false;
+  uint64_t pixelBytes = 0;
+
+  explicit DicomWalk(const std::string & path)
+    : in(path, std::ios::binary)
+    , size(FileSize(path))
+  {
+  }
+
+  uint64_t
+  Position()
+  {
+    return static_cast<uint64_t>(in.tellg());
+  }
+  uint64_t
+  Left()
+  {
+    const uint64_t at = Position();
+    return at < size ? size - at : 0;
+  }
+  bool
+  Read(unsigned char * p, size_t n)
+  {
+    return static_cast<bool>(in.read(reinterpret_cast<char *>(p), static_cast<std::streamsize>(n)));
+  }
+  void
+  Skip(uint64_t n)
+  {
+    in.seekg(static_cast<std::streamoff>(Position() + n));
+  }
+  uint16_t
+  U16(const unsigned char * p) const
+  {
+    return static_cast<uint16_t>(little ? p[0] | (p[1] << 8) : (p[0] << 8) | p[1]);
+  }
+  uint32_t
+  U32(const unsigned char * p) const
+  {
+    return little ? LittleEndian32(p) : BigEndian32(p);
+  }
+  bool
+  Stop(const std::string & why)
+  {
+    problem = why;
+    return false;
+  }
+  /** what runs past the end of the file: its length from the current position. */
+  bool
+  PastTheEnd(const std::string & what, uint64_t length)
+  {
+    return Stop(what + " has " + std::to_string(length) + " bytes from byte " + std::to_string(Position()) +
+                ", the file has " + std::to_string(size));
+  }
+  bool
+  GiveUp()
+  {
+    noVerdict = true;
+    return false;
+  }
+
+  static std::string
+  Tag(uint16_t group, uint16_t element)
+  {
+    char text[16];
+    std::snprintf(text, sizeof text, "(%04X,%04X)", group, element);
+    return text;
+  }
+  static bool
+  LongLengthVR(const char * vr)
+  {
+    static const char * const longs[] = {
+      "OB", "OD", "OF", "OL", "OV", "OW", "SQ", "SV", "UC", "UN", "UR", "UT", "UV"
+    };
+    return std::any_of(std::begin(longs), std::end(longs), [vr](const char * l) { return std::memcmp(l, vr, 2) == 0; });
+  }
+  static bool
+  ShortLengthVR(const char * vr)
+  {
+    static const char * const shorts[] = { "AE", "AS", "AT", "CS", "DA", "DS", "DT", "FD", "FL", "IS", "LO",
+                                           "LT", "PN", "SH", "SL", "SS", "ST", "TM", "UI", "UL", "US" };
+    return std::any_of(
+      std::begin(shorts), std::end(shorts), [vr](const char * s) { return std::memcmp(s, vr, 2) == 0; });
+  }
+
+  /** The header of the data element at the current position (not an item tag): false when the file ends in it or
+   * its VR is not one the walk knows. */
+  bool
+  Header(uint16_t & group, uint16_t & element, char * vr, uint32_t & length)
+  {
+    unsigned char h[8];
+    if (Left() < 8 || !Read(h, 8))
+    {
+      return Stop("the file ends inside a data element's header, at byte " + std::to_string(Position()));
+    }
+    group = U16(h);
+    element = U16(h + 2);
+    vr[0] = vr[1] = '\0';
+    if (group == 0xFFFE || !explicitVR)
+    {
+      length = U32(h + 4);
+      return true;
+    }
+    vr[0] = static_cast<char>(h[4]);
+    vr[1] = static_cast<char>(h[5]);
+    if (ShortLengthVR(vr))
+    {
+      length = U16(h + 6);
+      return true;
+    }
+    if (!LongLengthVR(vr))
+    {
+      return GiveUp();
+    }
+    unsigned char l[4];
+    if (Left() < 4 || !Read(l, 4))
+    {
+      return Stop("the file ends inside the header of element " + Tag(group, element));
+    }
+    length = U32(l);
+    return true;
+  }
+
+  /** Unsigned integer value of a top-level image attribute (US, or IS text for Number of Frames). */
+  void
+  Attribute(uint16_t element, uint32_t length)
+  {
+    if (length == 0 || length > 16)
+    {
+      return;
+    }
+    unsigned char v[16];
+    if (!Read(v, length))
+    {
+      return;
+    }
+    in.seekg(static_cast<std::streamoff>(Position() - length));
+    const uint64_t value =
+      element == 0x0008
+        ? static_cast<uint64_t>(std::strtoull(std::string(reinterpret_cast<char *>(v), length).c_str(), nullptr, 10))
+        : (length >= 2 ? U16(v) : 0);
+    switch (element)
+    {
+      case 0x0002:
+        samples = value;
+        break;
+      case 0x0008:
+        frames = value > 0 ? value : 1;
+        break;
+      case 0x0010:
+        rows = value;
+        break;
+      case 0x0011:
+        columns = value;
+        break;
+      case 0x0100:
+        bitsAllocated = value;
+        break;
+      default:
+        break;
+    }
+  }
+
+  /** The fragments of encapsulated pixel data, to the sequence delimiter. */
+  bool
+  Fragments()
+  {
+    for (int items = 0;; ++items)
+    {
+      unsigned char h[8];
+      if (Left() == 0 && items >= 2)
+      {
+        return GiveUp(); // the offset table and a fragment, then no delimiter: some writers leave it out at the end
+      }
+      if (Left() < 8 || !Read(h, 8))
+      {
+        return Stop("the file ends inside its encapsulated pixel data");
+      }
+      const uint16_t group = U16(h), element = U16(h + 2);
+      const uint32_t length = U32(h + 4);
+      if (group != 0xFFFE || (element != 0xE000 && element != 0xE0DD) || length == Undefined)
+      {
+        return GiveUp();
+      }
+      if (element == 0xE0DD)
+      {
+        return true;
+      }
+      if (length > Left())
+      {
+        return PastTheEnd("a fragment of its encapsulated pixel data", length);
+      }
+      Skip(length);
+    }
+  }
+
+  /** The items of a sequence of undefined length, to its delimiter; items of undefined length are walked. A UN
+   * element's items are implicit VR little endian. */
+  bool
+  Sequence(int depth, bool implicitLittle)
+  {
+    const bool wasLittle = little, wasExplicit = explicitVR;
+    if (implicitLittle)
+    {
+      little = true;
+    }
+    bool ok = true;
+    for (;;)
+    {
+      unsigned char h[8];
+      if (Left() < 8 || !Read(h, 8))
+      {
+        ok = Stop("the file ends inside a sequence");
+        break;
+      }
+      const uint16_t group = U16(h), element = U16(h + 2);
+      const uint32_t length = U32(h + 4);
+      if (group != 0xFFFE || (element != 0xE000 && element != 0xE0DD))
+      {
+        ok = GiveUp();
+        break;
+      }
+      if (element == 0xE0DD)
+      {
+        break;
+      }
+      if (length != Undefined)
+      {
+        if (length > Left())
+        {
+          ok = PastTheEnd("a sequence item", length);
+          break;
+        }
+        Skip(length);
+        continue;
+      }
+      if (implicitLittle)
+      {
+        explicitVR = false;
+      }
+      ok = DataSet(depth + 1, true);
+      explicitVR = wasExplicit;
+      if (!ok)
+      {
+        break;
+      }
+    }
+    little = wasLittle;
+    explicitVR = wasExplicit;
+    return ok;
+  }
+
+  /** Data elements to the end of the file (depth 0) or to an item delimiter (inItem). */
+  bool
+  DataSet(int depth, bool inItem)
+  {
+    if (depth > 32)
+    {
+      return GiveUp();
+    }
+    for (;;)
+    {
+      if (Left() == 0)
+      {
+        return inItem ? Stop("the file ends inside a sequence item") : true;
+      }
+      uint16_t group = 0, element = 0;
+      uint32_t length = 0;
+      char     vr[2];
+      if (!Header(group, element, vr, length))
+      {
+        return false;
+      }
+      if (group == 0xFFFE)
+      {
+        return inItem && element == 0xE00D ? true : GiveUp();
+      }
+      const bool pixel = depth == 0 && group == 0x7FE0 && (element == 0x0010 || element == 0x0008 || element == 0x0009);
+      if (length == Undefined)
+      {
+        if (pixel)
+        {
+          pixelData = encapsulated = true;
+          if (!Fragments())
+          {
+            return false;
+          }
+        }
+        else if (!Sequence(depth, explicitVR && std::memcmp(vr, "UN", 2) == 0))
+        {
+          return false;
+        }
+        continue;
+      }
+      if (length > Left())
+      {
+        return PastTheEnd("element " + Tag(group, element), length);
+      }
+      if (pixel)
+      {
+        pixelData = true;
+        pixelBytes = length;
+      }
+      else if (depth == 0 && group == 0x0028)
+      {
+        Attribute(element, length);
+      }
+      Skip(length);
+    }
+  }
+};
+
+/** DICOM (a Part 10 file or a bare data set): every element whole, Pixel Data present and, uncompressed grey values,
+ * as long as rows x columns x frames x bytes per sample. No verdict (no exception) on encodings the walk does not
+ * follow (DicomWalk). */
+inline void
+CheckDicom(const std::string & path)
+{
+  DicomWalk w(path);
+  if (!w.in)
+  {
+    return; // left to GDCM, which says why it cannot read the file
+  }
+  unsigned char head[132];
+  uint64_t      start = 0;
+  if (w.size >= 132 && w.Read(head, 132) && std::memcmp(head + 128, "DICM", 4) == 0)
+  {
+    start = 132;
+  }
+  w.in.clear();
+  w.in.seekg(static_cast<std::streamoff>(start));
+  // the file meta information (group 0002), explicit VR little endian, names the data set's transfer syntax
+  std::string syntax;
+  bool        meta = false;
+  for (;;)
+  {
+    unsigned char g[2];
+    if (w.Left() < 2 || !w.Read(g, 2))
+    {
+      break;
+    }
+    w.in.seekg(static_cast<std::streamoff>(w.Position() - 2));
+    if ((g[0] | (g[1] << 8)) != 0x0002)
+    {
+      break;
+    }
+    meta = true;
+    uint16_t group = 0, element = 0;
+    uint32_t length = 0;
+    char     vr[2];
+    if (!w.Header(group, element, vr, length))
+    {
+      if (!w.problem.empty())
+      {
+        ThrowTruncated(path, w.problem);
+      }
+      return;
+    }
+    if (length == DicomWalk::Undefined)
+    {
+      return;
+    }
+    if (length > w.Left())
+    {
+      w.PastTheEnd("element " + DicomWalk::Tag(group, element), length);
+      ThrowTruncated(path, w.problem);
+    }
+    if (element == 0x0010 && length <= 64)
+    {
+      std::string value(length, '\0');
+      w.in.read(&value[0], length);
+      syntax = value.substr(0, value.find_last_not_of(std::string(" \0", 2)) + 1);
+    }
+    else
+    {
+      w.Skip(length);
+    }
+  }
+  if (syntax == "1.2.840.10008.1.2.1.99")
+  {
+    return; // a deflated data set
+  }
+  if (w.Left() < 8)
+  {
+    if (start == 132 || meta)
+    {
+      ThrowTruncated(path,
+                     w.Left() == 0
+                       ? "it holds no data set after its file meta information"
+                       : "the file ends inside a data element's header, at byte " + std::to_string(w.Position()));
+    }
+    return; // not a DICOM file the walk can tell anything about: left to GDCM
+  }
+  if (syntax == "1.2.840.10008.1.2")
+  {
+    w.explicitVR = false;
+  }
+  else if (syntax == "1.2.840.10008.1.2.2")
+  {
+    w.little = false;
+  }
+  else if (!meta || syntax.empty())
+  {
+    // no meta information: a bare data set; its first element tells the byte order and whether VRs are explicit
+    unsigned char h[6];
+    if (!w.Read(h, 6))
+    {
+      return;
+    }
+    w.in.seekg(static_cast<std::streamoff>(w.Position() - 6));
+    w.little = !((h[0] << 8 | h[1]) == 0x0008 && (h[0] | (h[1] << 8)) != 0x0008);
+    const char vr[2] = { static_cast<char>(h[4]), static_cast<char>(h[5]) };
+    w.explicitVR = DicomWalk::ShortLengthVR(vr) || DicomWalk::LongLengthVR(vr);
+  }
+  if (!w.DataSet(0, false))
+  {
+    if (!w.problem.empty())
+    {
+      ThrowTruncated(path, w.problem);
+    }
+    return;
+  }
+  if (!w.pixelData)
+  {
+    ThrowTruncated(path, "it holds no Pixel Data element (7FE0,0010)");
+  }
+  // uncompressed grey values (one sample per pixel: colour may be stored subsampled, as YBR_FULL_422)
+  if (!w.encapsulated && w.samples == 1 && w.rows > 0 && w.columns > 0 && w.frames <= (uint64_t(1) << 24) &&
+      w.bitsAllocated > 0 && w.bitsAllocated % 8 == 0)
+  {
+    const uint64_t expected = w.rows * w.columns * w.frames * (w.bitsAllocated / 8);
+    if (w.pixelBytes < expected)
+    {
+      ThrowTruncated(path,
+                     "its Pixel Data has " + std::to_string(w.pixelBytes) + " bytes, its header describes " +
+                       std::to_string(expected) + ": " + std::to_string(w.rows) + " rows x " +
+                       std::to_string(w.columns) + " columns x " + std::to_string(w.frames) + " frames x " +
+                       std::to_string(w.bitsAllocated / 8) + " bytes");
+    }
+  }
+}
 } // namespace detail
 
 /** Before any ITK reader opens path: throws itk::ExceptionObject when a PNG, JPEG or BMP file (told by its first
@@ -396,8 +859,17 @@ CheckEncodedImageFileIsComplete(const std::string & path)
   }
 }
 
+/** Throws itk::ExceptionObject when the DICOM file at path ends before its data elements do, has no Pixel Data or
+ * less uncompressed grey pixel data than rows x columns x frames (detail::DicomWalk). Run on every slice of a
+ * series: GDCM reads a slice cut short without an error, the missing pixels zeros. */
+inline void
+CheckDicomFileIsComplete(const std::string & path)
+{
+  detail::CheckDicom(path);
+}
+
 /** After io has read path's header: throws itk::ExceptionObject when an uncompressed NIfTI, MetaImage or legacy VTK
- * file holds less pixel data than its header describes. */
+ * file holds less pixel data than its header describes, or a DICOM file less than its elements describe. */
 inline void
 CheckRawPixelDataIsComplete(const std::string & path, const itk::ImageIOBase * io)
 {
@@ -414,6 +886,10 @@ CheckRawPixelDataIsComplete(const std::string & path, const itk::ImageIOBase * i
   else if (name == "VTKImageIO")
   {
     detail::CheckVtk(path, bytes);
+  }
+  else if (name == "GDCMImageIO")
+  {
+    detail::CheckDicom(path);
   }
 }
 } // namespace dmrtools

@@ -387,6 +387,10 @@ ReadImageOrDicomSeries(const std::string & path)
     auto reader = itk::ImageSeriesReader<TImage>::New();
     reader->SetImageIO(itk::GDCMImageIO::New());
     const auto files = DicomSeriesFileNames(path);
+    for (const auto & file : files)
+    {
+      CheckDicomFileIsComplete(file); // GDCM reads a slice cut short as if it were whole
+    }
     reader->SetFileNames(files);
     reader->Update();
     CheckDicomSliceGeometry(path, files, reader->GetOutput());

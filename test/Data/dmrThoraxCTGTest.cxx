@@ -186,6 +186,35 @@ TEST(ThoraxCT, IncompleteAndMixedSeriesAreRefused)
     EXPECT_NE(message.find("(140 slices)"), std::string::npos) << message;
     EXPECT_NE(message.find("(1 slices)"), std::string::npos) << message;
   }
+  // one slice cut short, as by an interrupted transfer: GDCM read it with the missing half of its pixels as zeros
+  // (-1024 HU after rescaling) and no error. Every slice of the real series (implicit VR little endian) passes the
+  // check.
+  const std::string cut = scratch.Path() + "/cut";
+  itksys::SystemTools::MakeDirectory(cut);
+  for (size_t s = 0; s < files.size(); ++s)
+  {
+    EXPECT_NO_THROW(dmrtools::CheckDicomFileIsComplete(files[s])) << files[s];
+    if (s != files.size() / 2)
+    {
+      link(files[s], cut);
+    }
+  }
+  const std::string cutSlice = cut + "/" + itksys::SystemTools::GetFilenameName(files[files.size() / 2]);
+  {
+    std::ifstream in(files[files.size() / 2], std::ios::binary);
+    std::string   bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    std::ofstream(cutSlice, std::ios::binary) << bytes.substr(0, bytes.size() / 2);
+  }
+  try
+  {
+    dmrtools::ReadImageOrDicomSeries<CTImageType>(cut);
+    ADD_FAILURE() << "a series with a slice cut short was read";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find(cutSlice + ": the file is truncated or corrupt"), std::string::npos)
+      << e.GetDescription();
+  }
   // the complete series reads (DicomSeriesGeometryMatchesItsNiftiConversion checks its geometry)
   EXPECT_EQ(dmrtools::ImageDimensionOf(dir), 3u);
 }

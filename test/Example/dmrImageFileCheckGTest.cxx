@@ -223,7 +223,7 @@ namespace
  * dir, one file per entry of positions (Image Position (Patient), mm), named in reverse order so that only the
  * positions order them. */
 void
-WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3>> & positions)
+WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3>> & positions, bool compressed = false)
 {
   using SliceType = itk::Image<short, 2>;
   itksys::SystemTools::MakeDirectory(dir);
@@ -259,6 +259,11 @@ WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3
     io->KeepOriginalUIDOn();
     auto writer = itk::ImageFileWriter<SliceType>::New();
     writer->SetImageIO(io);
+    if (compressed)
+    {
+      io->SetCompressionType(itk::GDCMImageIO::JPEG); // encapsulated pixel data (fragments)
+      writer->UseCompressionOn();
+    }
     writer->SetInput(slice);
     writer->SetFileName(dir + "/slice" + std::to_string(positions.size() - k) + ".dcm");
     writer->Update();
@@ -336,5 +341,99 @@ TEST(ImageFileCheck, DicomSeriesMustStackItsSlicesEvenlyAlongTheirNormal)
   itksys::SystemTools::MakeDirectory(onlyText);
   WriteBytes(onlyText + "/timezone", "Etc/UTC\n");
   EXPECT_NE(message(onlyText).find("holds no DICOM series"), std::string::npos) << message(onlyText);
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+TEST(ImageFileCheck, DicomFileCutShortIsRefusedWhereverItIsCut)
+{
+  // GDCM reads a DICOM slice that ends early as if it were whole, with the missing pixels zeros: a series with one
+  // slice cut by an interrupted transfer was registered with that slice partly at 0 (-1024 HU after rescaling)
+  using CTType = itk::Image<float, 3>;
+  const std::string                  dir = WorkDir();
+  std::vector<std::array<double, 3>> positions;
+  for (int k = 0; k < 6; ++k)
+  {
+    positions.push_back({ -8.0, -6.0, 2.5 * k });
+  }
+  for (const bool jpeg : { false, true }) // implicit VR little endian, and explicit with JPEG fragments
+  {
+    const std::string series = dir + (jpeg ? "/jpeg" : "/native");
+    WriteDicomSeries(series, positions, jpeg);
+    const auto whole = dmrtools::ReadImageOrDicomSeries<CTType>(series);
+    ASSERT_EQ(whole->GetLargestPossibleRegion().GetSize(), (itk::Size<3>{ { 16, 12, 6 } }));
+    const std::string file = series + "/slice3.dcm"; // the fourth slice by position
+    const std::string bytes = ReadBytes(file);
+    EXPECT_NO_THROW(dmrtools::CheckDicomFileIsComplete(file));
+    EXPECT_FALSE(ThrowsTruncated(file)) << file; // as the single-file read checks it
+    // every cut after the preamble is found: in the meta information, in any element, in the pixel data. (Only
+    // encapsulated pixel data that ends after a whole fragment without its 8-byte sequence delimiter is left to GDCM:
+    // some writers leave the delimiter out.)
+    size_t missed = 0;
+    for (size_t length = 132; length < bytes.size(); ++length)
+    {
+      if (jpeg && length == bytes.size() - 8)
+      {
+        ASSERT_EQ(bytes.substr(length), std::string("\xfe\xff\xdd\xe0\0\0\0\0", 8));
+        continue;
+      }
+      WriteBytes(file, bytes.substr(0, length));
+      try
+      {
+        dmrtools::CheckDicomFileIsComplete(file);
+        ++missed;
+        ADD_FAILURE() << (jpeg ? "JPEG" : "native") << " file cut to " << length << " of " << bytes.size()
+                      << " bytes passed";
+      }
+      catch (const itk::ExceptionObject & e)
+      {
+        EXPECT_NE(std::string(e.GetDescription()).find(file + ": the file is truncated or corrupt"), std::string::npos)
+          << e.GetDescription();
+      }
+      if (missed > 3)
+      {
+        break;
+      }
+    }
+    if (!jpeg)
+    {
+      // a Pixel Data element whose own length is short of rows x columns x 2 bytes (the file ends with it)
+      const std::string pixelTag("\xe0\x7f\x10\x00", 4); // (7FE0,0010), implicit VR little endian as GDCM writes
+      const size_t      at = bytes.rfind(pixelTag);
+      ASSERT_NE(at, std::string::npos);
+      ASSERT_EQ(bytes.size(), at + 8 + 16 * 12 * 2);
+      std::string shorter = bytes.substr(0, bytes.size() - 100);
+      shorter[at + 4] = static_cast<char>((16 * 12 * 2 - 100) & 0xff);
+      shorter[at + 5] = static_cast<char>((16 * 12 * 2 - 100) >> 8);
+      WriteBytes(file, shorter);
+      try
+      {
+        dmrtools::CheckDicomFileIsComplete(file);
+        ADD_FAILURE() << "a Pixel Data element shorter than its image passed";
+      }
+      catch (const itk::ExceptionObject & e)
+      {
+        EXPECT_NE(std::string(e.GetDescription()).find("its Pixel Data has 284 bytes, its header describes 384"),
+                  std::string::npos)
+          << e.GetDescription();
+      }
+    }
+    // the series with that slice cut in its pixel data is refused, naming the slice
+    WriteBytes(file, bytes.substr(0, bytes.size() - 100));
+    try
+    {
+      dmrtools::ReadImageOrDicomSeries<CTType>(series);
+      ADD_FAILURE() << "a series with a slice cut short was read";
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      EXPECT_NE(std::string(e.GetDescription()).find(file + ": the file is truncated or corrupt"), std::string::npos)
+        << e.GetDescription();
+    }
+    // and so is the slice read alone
+    EXPECT_TRUE(ThrowsTruncated(file)) << file;
+    WriteBytes(file, bytes);
+    EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<CTType>(series)->GetPixel({ { 5, 4, 3 } }),
+              whole->GetPixel({ { 5, 4, 3 } }));
+  }
   itksys::SystemTools::RemoveADirectory(dir);
 }
