@@ -394,6 +394,7 @@ struct DicomWalk
   // the top-level image attributes
   uint64_t rows = 0, columns = 0, samples = 1, bitsAllocated = 0, frames = 1;
   bool     pixelData = false, encapsulated = false;
+  bool     pixelComplete = false; // the top-level Pixel Data is whole (what follows it cannot spoil the image)
   uint64_t pixelBytes = 0;
 
   explicit DicomWalk(const std::string & path)
@@ -679,6 +680,7 @@ struct DicomWalk
           {
             return false;
           }
+          pixelComplete = true;
         }
         else if (!Sequence(depth, explicitVR && std::memcmp(vr, "UN", 2) == 0))
         {
@@ -692,7 +694,7 @@ struct DicomWalk
       }
       if (pixel)
       {
-        pixelData = true;
+        pixelData = pixelComplete = true;
         pixelBytes = length;
       }
       else if (depth == 0 && group == 0x0028)
@@ -806,12 +808,12 @@ CheckDicom(const std::string & path)
     const char vr[2] = { static_cast<char>(h[4]), static_cast<char>(h[5]) };
     w.explicitVR = DicomWalk::ShortLengthVR(vr) || DicomWalk::LongLengthVR(vr);
   }
-  if (!w.DataSet(0, false))
+  if (!w.DataSet(0, false) && !w.problem.empty() && !w.pixelComplete)
   {
-    if (!w.problem.empty())
-    {
-      ThrowTruncated(path, w.problem);
-    }
+    ThrowTruncated(path, w.problem); // (after a whole Pixel Data: trailing bytes some writers add, left to GDCM)
+  }
+  if (w.noVerdict && !w.pixelComplete)
+  {
     return;
   }
   if (!w.pixelData)

@@ -365,6 +365,9 @@ TEST(ImageFileCheck, DicomFileCutShortIsRefusedWhereverItIsCut)
     const std::string bytes = ReadBytes(file);
     EXPECT_NO_THROW(dmrtools::CheckDicomFileIsComplete(file));
     EXPECT_FALSE(ThrowsTruncated(file)) << file; // as the single-file read checks it
+    // bytes after a whole Pixel Data (some writers pad files) do not spoil the image: not refused
+    WriteBytes(file, bytes + std::string("\0\0\0", 3));
+    EXPECT_NO_THROW(dmrtools::CheckDicomFileIsComplete(file));
     // every cut after the preamble is found: in the meta information, in any element, in the pixel data. (Only
     // encapsulated pixel data that ends after a whole fragment without its 8-byte sequence delimiter is left to GDCM:
     // some writers leave the delimiter out.)
