@@ -27,9 +27,11 @@
 #include "itksys/SystemTools.hxx"
 #include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cstdio>
 #include <fstream>
 #include <functional>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <fcntl.h> // open (POSIX)
@@ -46,9 +48,11 @@ namespace dmrtools
  * the run succeeded, so a failure never leaves half-written outputs. */
 struct Staging
 {
-  std::string dir, stage;
-  bool        createdDir{ false };
-  bool        committed{ false };
+  std::string             dir, stage;
+  bool                    createdDir{ false };
+  bool                    committed{ false };
+  static constexpr double DefaultLockPatience = 120;
+  double                  lockPatience{ DefaultLockPatience }; // seconds Commit waits for the directory's lock
   explicit Staging(const std::string & outputDir)
     : dir(outputDir)
   {
@@ -123,20 +127,22 @@ struct Staging
   /** Holds an exclusive flock(2) on the output directory while it lives, so that runs into the same directory commit
    * one after the other: two runs that ended together renamed their files in turn and could leave a mix of both (the
    * warped image of one beside the field of the other), and one's removal of stale numbered meshes could take the
-   * other's. A holder that keeps the lock for LockPatience seconds makes the commit fail rather than hang; where the
-   * file system has no such locks (some network file systems) the commit goes on without. */
+   * other's. A holder that keeps the lock for the patience (DefaultLockPatience seconds in the tools) makes the commit
+   * fail rather than hang; where the file system has no such locks (some network file systems) the commit goes on
+   * without. */
   struct DirectoryLock
   {
-    static constexpr int LockPatience = 120;
-    int                  fd{ -1 };
-    explicit DirectoryLock(const std::string & directory)
+    int fd{ -1 };
+    /** Waits at most patience seconds (of wall-clock time) for the lock. */
+    explicit DirectoryLock(const std::string & directory, double patience = DefaultLockPatience)
     {
       fd = ::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
       if (fd < 0)
       {
         return;
       }
-      for (long long waited = 0;; waited += 50)
+      const auto start = std::chrono::steady_clock::now();
+      for (;;)
       {
         if (::flock(fd, LOCK_EX | LOCK_NB) == 0)
         {
@@ -147,11 +153,13 @@ struct Staging
           Release(); // no locks here
           return;
         }
-        if (waited >= 1000LL * LockPatience)
+        if (std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() >= patience)
         {
           Release();
+          std::ostringstream waited;
+          waited << patience;
           throw std::runtime_error("another process has held the output directory " + directory + " for " +
-                                   std::to_string(LockPatience) + " s while this run waited to move its outputs in");
+                                   waited.str() + " s while this run waited to move its outputs in");
         }
         if (InterruptSignal() != 0)
         {
@@ -182,7 +190,7 @@ struct Staging
   Commit(const std::function<void()> & afterMove = {})
   {
     ThrowIfInterrupted(); // an interrupted run commits nothing (the destructor removes the staged outputs)
-    const DirectoryLock lock(dir);
+    const DirectoryLock lock(dir, lockPatience);
     ThrowIfInterrupted();
     itksys::Directory listing;
     listing.Load(stage);

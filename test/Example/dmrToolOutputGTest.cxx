@@ -25,12 +25,14 @@
 #include "itkVector.h"
 #include "itksys/Directory.hxx"
 #include "gtest/gtest.h"
+#include <chrono>
 #include <csignal>
 #include <cstring>
 #include <fstream>
 #include <iterator>
 #include <random>
 #include <fcntl.h>
+#include <sys/file.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -373,4 +375,59 @@ TEST(ToolErrors, ItkPrefixesAndAddressesAreRemovedEverywhereInAMessage)
   EXPECT_EQ(WithoutItkPrefix("a: ITK ERROR: A(0x1): first; b: ITK ERROR: B(0x2a): second"),
             "a: A: first; b: B: second");
   EXPECT_EQ(WithoutItkPrefix("no prefix (0x12): kept"), "no prefix (0x12): kept");
+}
+
+TEST(ToolOutput, ACommitThatCannotGetTheLockGivesUpAfterItsPatienceAndLeavesNothing)
+{
+  // Another process that keeps the output directory's lock (a hung run, a stale lock on a network file system) makes
+  // a finished run's commit fail with one message after its patience (120 s in the tools), instead of waiting forever;
+  // its staged outputs are removed and the directory keeps what it had.
+  const std::string dir = TemporaryDirectory();
+  {
+    std::ofstream(dir + "/report.json") << "earlier run\n";
+  }
+  const int holder = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC); // another open file description
+  ASSERT_GE(holder, 0);
+  ASSERT_EQ(::flock(holder, LOCK_EX | LOCK_NB), 0);
+  std::string stage;
+  {
+    dmrtools::Staging staging(dir);
+    stage = staging.stage;
+    {
+      std::ofstream(staging.Path("report.json")) << "this run\n";
+    }
+    staging.lockPatience = 0.5;
+    const auto start = std::chrono::steady_clock::now();
+    try
+    {
+      staging.Commit();
+      ADD_FAILURE() << "the commit went on while another process held the lock";
+    }
+    catch (const std::runtime_error & e)
+    {
+      EXPECT_NE(std::string(e.what()).find("another process has held the output directory " + dir + " for 0.5 s"),
+                std::string::npos)
+        << e.what();
+    }
+    const double waited = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    EXPECT_GE(waited, 0.5);
+    EXPECT_LT(waited, 30.0);                                  // it gave up (a generous bound for a loaded machine)
+    EXPECT_TRUE(itksys::SystemTools::FileIsDirectory(stage)); // still staged until the run ends
+  }
+  EXPECT_FALSE(itksys::SystemTools::FileExists(stage)); // the ended run's staging is removed
+  std::ifstream kept(dir + "/report.json");
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(kept), std::istreambuf_iterator<char>()), "earlier run\n");
+  // once the lock is free, a commit goes through
+  ::close(holder);
+  {
+    dmrtools::Staging staging(dir);
+    {
+      std::ofstream(staging.Path("report.json")) << "next run\n";
+    }
+    staging.lockPatience = 0.5;
+    EXPECT_NO_THROW(staging.Commit());
+  }
+  std::ifstream next(dir + "/report.json");
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(next), std::istreambuf_iterator<char>()), "next run\n");
+  itksys::SystemTools::RemoveADirectory(dir);
 }
