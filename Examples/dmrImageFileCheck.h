@@ -516,7 +516,8 @@ struct DicomWalk
     return true;
   }
 
-  /** Unsigned integer value of a top-level image attribute (US, or IS text for Number of Frames). */
+  /** Unsigned integer value of a top-level image attribute (US, or IS text for Number of Frames), read from the
+   * current position (the caller moves past the element). */
   void
   Attribute(uint16_t element, uint32_t length)
   {
@@ -529,7 +530,6 @@ struct DicomWalk
     {
       return;
     }
-    in.seekg(static_cast<std::streamoff>(Position() - length));
     const uint64_t value =
       element == 0x0008
         ? static_cast<uint64_t>(std::strtoull(std::string(reinterpret_cast<char *>(v), length).c_str(), nullptr, 10))
@@ -597,7 +597,8 @@ struct DicomWalk
     const bool wasLittle = little, wasExplicit = explicitVR;
     if (implicitLittle)
     {
-      little = true;
+      little = true; // item tags carry no VR, so the items' data sets can be read this way throughout
+      explicitVR = false;
     }
     bool ok = true;
     for (;;)
@@ -629,12 +630,7 @@ struct DicomWalk
         Skip(length);
         continue;
       }
-      if (implicitLittle)
-      {
-        explicitVR = false;
-      }
       ok = DataSet(depth + 1, true);
-      explicitVR = wasExplicit;
       if (!ok)
       {
         break;
@@ -692,6 +688,7 @@ struct DicomWalk
       {
         return PastTheEnd("element " + Tag(group, element), length);
       }
+      const uint64_t valueAt = Position();
       if (pixel)
       {
         pixelData = pixelComplete = true;
@@ -699,9 +696,9 @@ struct DicomWalk
       }
       else if (depth == 0 && group == 0x0028)
       {
-        Attribute(element, length);
+        Attribute(element, length); // reads the value
       }
-      Skip(length);
+      in.seekg(static_cast<std::streamoff>(valueAt + length));
     }
   }
 };
