@@ -102,6 +102,7 @@ struct Options
   std::string forceGradient{ "warped" };
   long        stepHalvings{ 5 };
   long        deviceSolveMinDofs{ 300 };
+  double      femTolerance{ 1e-6 };
   std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
   bool        landmarksInMM{ false };
   bool        window{ false };
@@ -127,6 +128,8 @@ const char * const Usage =
   "                         the transformation (default 5; 0: always take the full step, as in the paper)\n"
   "  --cvt-max-sweeps S     at most S swap sweeps of the CVT optimisation per iteration (default 1000: converge)\n"
   "  --cvt-epsilon E        stop the CVT sweeps when a sweep lowers the energy by at most E x energy (default 0)\n"
+  "  --fem-tolerance T      stop the conjugate-gradient solve of the elastic system at |r| < T |f| (default 1e-6;\n"
+  "                         1e-16 to 1e-2)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
@@ -321,6 +324,8 @@ ParseArguments(int argc, char * argv[])
       opt.alphaFactor = ParseReal(a, v);
     else if (a == "--step-halvings")
       opt.stepHalvings = ParseInteger(a, v);
+    else if (a == "--fem-tolerance")
+      opt.femTolerance = ParseReal(a, v);
     else if (a == "--device-solve-min-dofs")
       opt.deviceSolveMinDofs = ParseInteger(a, v);
     else if (a == "--force-gradient")
@@ -401,6 +406,8 @@ ParseArguments(int argc, char * argv[])
     throw UsageError("--cvt-max-sweeps must be at least 1");
   if (!(opt.cvtEpsilon >= 0.0 && opt.cvtEpsilon <= 1.0))
     throw UsageError("--cvt-epsilon must be in [0, 1]");
+  if (!(opt.femTolerance >= 1e-16 && opt.femTolerance <= 1e-2))
+    throw UsageError("--fem-tolerance must be in [1e-16, 1e-2]");
   if (opt.window && !(opt.windowHigh > opt.windowLow))
     throw UsageError("--intensity-window: HI must be greater than LO");
   if (opt.fixedLandmarks.empty() != opt.movingLandmarks.empty())
@@ -987,6 +994,7 @@ Run(const Options & opt)
   method->SetRegularGridSize(static_cast<unsigned int>(opt.regularSize));
   method->SetMaximumNumberOfSweeps(static_cast<itk::SizeValueType>(opt.cvtMaxSweeps));
   method->SetCVTEpsilon(opt.cvtEpsilon);
+  method->SetSolverTolerance(opt.femTolerance);
   if (opt.threads > 0)
   {
     method->SetNumberOfWorkUnits(static_cast<itk::ThreadIdType>(opt.threads));
@@ -1279,6 +1287,7 @@ Run(const Options & opt)
        << "  \"force_gradient\": \"" << opt.forceGradient << "\",\n"
        << "  \"step_halvings\": " << opt.stepHalvings << ",\n"
        << "  \"device_solve_min_dofs\": " << opt.deviceSolveMinDofs << ",\n"
+       << "  \"fem_tolerance\": " << opt.femTolerance << ",\n"
        << "  \"device_solves\": " << deviceSolves << ",\n"
        << "  \"cg_products\": " << cgProducts << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"

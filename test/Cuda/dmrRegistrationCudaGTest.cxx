@@ -142,10 +142,17 @@ RunsAgree(MeshMode     mode,
           double       energyRatio = 0.1,
           size_t *     halvedSteps = nullptr,
           bool         solveOnDevice = false,
-          size_t       deviceSolveLimit = 0)
+          size_t       deviceSolveLimit = 0,
+          double       solverTolerance = 0.0, // 0: the registration's default
+          size_t *     gpuProducts = nullptr)
 {
   auto cpu = Registration<D>(Backend::CPU, mode, nodes, iterations, n, energyRatio);
   auto gpu = Registration<D>(Backend::CUDA, mode, nodes, iterations, n, energyRatio);
+  if (solverTolerance > 0.0)
+  {
+    cpu->SetSolverTolerance(solverTolerance);
+    gpu->SetSolverTolerance(solverTolerance);
+  }
   // every elastic system on the device, or (the default threshold, these meshes are small) every one on the CPU
   gpu->SetDeviceSolverMinimumDegreesOfFreedom(solveOnDevice ? 0 : 1000000);
   // a limit far below what the systems need: every device solve gives up and the CPU solver takes over
@@ -157,6 +164,10 @@ RunsAgree(MeshMode     mode,
   {
     EXPECT_EQ(r.deviceSolve, solveOnDevice && !fallBack) << "iteration " << r.iteration;
     EXPECT_GT(r.solverIterations, 0u) << "iteration " << r.iteration;
+    if (gpuProducts)
+    {
+      *gpuProducts += r.solverIterations;
+    }
   }
   EXPECT_EQ(cpu->GetBackendUsed(), Backend::CPU);
   ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
@@ -709,6 +720,17 @@ TEST(CudaRegistration, DeviceSolveRunMatchesCPU3D)
 {
   DMR_REQUIRE_DEVICE();
   RunsAgree<3>(MeshMode::Dynamic, 150, 30, 40, 0.1, nullptr, true);
+}
+
+// a looser stopping rule reaches the device solve: fewer products, and still the CPU's run at that tolerance
+TEST(CudaRegistration, DeviceSolveFollowsTheSolverTolerance3D)
+{
+  DMR_REQUIRE_DEVICE();
+  size_t tight = 0, loose = 0;
+  RunsAgree<3>(MeshMode::Dynamic, 150, 20, 40, 0.1, nullptr, true, 0, 1e-12, &tight);
+  RunsAgree<3>(MeshMode::Dynamic, 150, 20, 40, 0.1, nullptr, true, 0, 1e-6, &loose);
+  std::cout << "device CG products: " << tight << " at 1e-12, " << loose << " at 1e-6" << std::endl;
+  EXPECT_LT(static_cast<double>(loose), 0.8 * static_cast<double>(tight));
 }
 
 TEST(CudaRegistration, DeviceSolveRegularMeshRunMatchesCPU3D)

@@ -82,6 +82,7 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
                                               "EnergyRatio",
                                               "AlphaFactor",
                                               "CVTEpsilon",
+                                              "SolverTolerance",
                                               "MaximumNumberOfSweeps",
                                               "ReinitializationInterval",
                                               "MeshMode",
@@ -101,8 +102,38 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, AlphaFactor, 0.2);
   DMR_EXPECT_SET_GET(method, RegularGridSize, 6u);
   DMR_EXPECT_SET_GET(method, ReinitializationInterval, 3u);
+  DMR_EXPECT_SET_GET(method, SolverTolerance, 1e-8);
+  method->SetSolverTolerance(1.0); // clamped to the loosest tolerance that still solves
+  EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
   method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least
   EXPECT_EQ(method->GetNumberOfNodes(), 4u);
+}
+
+// the solver's stopping rule is the registration's setting: a looser one takes fewer conjugate-gradient products and
+// gives nearly the same registration
+TEST(FEMRegistrationMethod, SolverToleranceSetsWhereTheSolveStops)
+{
+  auto tight = SmallRegistration(MeshMode::Regular, 15);
+  auto loose = SmallRegistration(MeshMode::Regular, 15);
+  EXPECT_EQ(loose->GetSolverTolerance(), 1e-6); // the default
+  tight->SetSolverTolerance(1e-12);
+  tight->Update();
+  loose->Update();
+  size_t tightProducts = 0, looseProducts = 0;
+  for (const auto & r : tight->GetHistory())
+  {
+    tightProducts += r.solverIterations;
+  }
+  for (const auto & r : loose->GetHistory())
+  {
+    looseProducts += r.solverIterations;
+  }
+  std::cout << "CG products: " << tightProducts << " at 1e-12, " << looseProducts << " at 1e-6; SSD "
+            << tight->GetFinalSSD() << " vs " << loose->GetFinalSSD() << std::endl;
+  EXPECT_GT(looseProducts, 0u);
+  EXPECT_LT(static_cast<double>(looseProducts), 0.8 * static_cast<double>(tightProducts));
+  EXPECT_LT(tight->GetFinalSSD(), 0.8 * tight->GetHistory().front().ssd); // it registered
+  EXPECT_NEAR(loose->GetFinalSSD(), tight->GetFinalSSD(), 1e-3 * tight->GetFinalSSD());
 }
 
 TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
@@ -674,6 +705,9 @@ TEST(FEMRegistrationMethod, ParametersThatAreNotFiniteOrFarTooLargeAreRefused)
   auto method = SmallRegistration(MeshMode::Dynamic, 2);
   method->SetCVTEpsilon(nan);
   EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(method, { "CVTEpsilon must be a number in [0, 1]" }));
+  method = SmallRegistration(MeshMode::Dynamic, 2);
+  method->SetSolverTolerance(nan);
+  EXPECT_TRUE(itk::dmr::test::UpdateThrowsMentioning(method, { "SolverTolerance must be a number in [1e-16, 1e-2]" }));
   // at the bound, the elastic constants scaled together give the run of the default ones: beta absorbs the scale
   auto reference = SmallRegistration(MeshMode::Dynamic, 10);
   reference->Update();

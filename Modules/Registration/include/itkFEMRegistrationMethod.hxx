@@ -142,6 +142,10 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
   {
     itkExceptionMacro("CVTEpsilon must be a number in [0, 1], got " << m_CVTEpsilon);
   }
+  if (std::isnan(m_SolverTolerance))
+  {
+    itkExceptionMacro("SolverTolerance must be a number in [1e-16, 1e-2], got " << m_SolverTolerance);
+  }
   if (m_MeshMode == MeshModeEnum::Static && this->GetStaticMesh() == nullptr)
   {
     itkExceptionMacro("MeshMode Static needs a mesh: call SetStaticMesh()");
@@ -525,6 +529,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_CVTFilter->SetBackend(cuda ? m_Backend : BackendEnum::CPU);
   m_Solver->SetLambda(m_Lambda);
   m_Solver->SetMu(m_Mu);
+  m_Solver->SetTolerance(m_SolverTolerance);
   m_Labels = nullptr;
 
   m_History.clear();
@@ -1207,6 +1212,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "AlphaFactor: " << m_AlphaFactor << std::endl;
   os << indent << "ForceGradient: " << m_ForceGradient << std::endl;
   os << indent << "MaximumStepHalvings: " << m_MaximumStepHalvings << std::endl;
+  os << indent << "SolverTolerance: " << m_SolverTolerance << std::endl;
   os << indent << "CVTEpsilon: " << m_CVTEpsilon << std::endl;
   os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
   os << indent << "ReinitializationInterval: " << m_ReinitializationInterval << std::endl;
