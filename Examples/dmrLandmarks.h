@@ -293,6 +293,27 @@ InitialLandmarkErrors(const LandmarkPointList<VDimension> & fixed, const Landmar
   return errors;
 }
 
+/** Mean of fixed[i] + u(fixed[i]) - moving[i] in mm along the physical axes (field == nullptr: u = 0): an offset
+ * shared by the mapped landmarks, which the TRE's distances do not show (e.g. images that moved apart from their
+ * landmarks). The mean TRE is at least its length. */
+template <typename TField>
+itk::Vector<double, TField::ImageDimension>
+MeanLandmarkResidual(const LandmarkPointList<TField::ImageDimension> & fixed,
+                     const LandmarkPointList<TField::ImageDimension> & moving,
+                     const TField *                                    field)
+{
+  constexpr unsigned int D = TField::ImageDimension;
+  RequireCorrespondence<D>(fixed, moving);
+  const LandmarkPointList<D> mapped = field ? MapThroughField(fixed, field) : fixed;
+  itk::Vector<double, D>     sum;
+  sum.Fill(0.0);
+  for (size_t i = 0; i < mapped.size(); ++i)
+  {
+    sum += mapped[i] - moving[i];
+  }
+  return mapped.empty() ? sum : sum / static_cast<double>(mapped.size());
+}
+
 /** TRE summary {mean, std, p95, max} of a displacement field on the fixed grid. */
 template <typename TField>
 ErrorStatistics

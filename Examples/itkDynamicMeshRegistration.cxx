@@ -146,6 +146,7 @@ const char * const Usage =
   "  --fixed-landmarks FILE, --moving-landmarks FILE\n"
   "                         corresponding points (DIR-Lab format: 'x y z' per line, 1-based voxel indices of the\n"
   "                         fixed / moving image): the report gets tre_mm and tre_initial_mm {mean, std, p95, max}\n"
+  "                         and the mean of fixed + u - moving, tre_mean_residual_mm [x, y, z] (and _initial_)\n"
   "  --landmarks-in-mm      the landmark files hold physical coordinates (mm) instead of voxel indices\n"
   "  --truth-displacement FILE  a known displacement field on the fixed grid (mm, ITK convention): the report gets\n"
   "                         dense_error_mm and dense_error_initial_mm {mean, p95, max} inside the fixed mask (or all)\n"
@@ -1225,6 +1226,20 @@ Run(const Options & opt)
       evaluation +=
         "  \"tre_mm\": " + statisticsJson(dmrtools::TargetRegistrationError(landmarks.fixed, landmarks.moving, field)) +
         ",\n";
+      const auto residualJson = [](const auto & r) {
+        std::ostringstream o;
+        o << std::setprecision(6) << "[";
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          o << (k ? ", " : "") << r[k];
+        }
+        return o.str() + "]";
+      };
+      evaluation +=
+        "  \"tre_initial_mean_residual_mm\": " +
+        residualJson(dmrtools::MeanLandmarkResidual<FieldType>(landmarks.fixed, landmarks.moving, nullptr)) +
+        ",\n  \"tre_mean_residual_mm\": " +
+        residualJson(dmrtools::MeanLandmarkResidual(landmarks.fixed, landmarks.moving, field)) + ",\n";
     }
     catch (const itk::ExceptionObject & e)
     {

@@ -242,6 +242,9 @@ TEST(Landmarks, SyntheticFieldGivesKnownTRE)
   std::uniform_real_distribution<double> unit(0.0, 1.0);
   dmrtools::LandmarkPointList<3>         fixed, moving;
   std::vector<double>                    expected, initial;
+  itk::Vector<double, 3>                 meanOffset, meanInitial; // of moving - (fixed + u(fixed)), moving - fixed
+  meanOffset.Fill(0.0);
+  meanInitial.Fill(0.0);
   for (int i = 0; i < 50; ++i)
   {
     itk::ContinuousIndex<double, 3> c;
@@ -258,6 +261,8 @@ TEST(Landmarks, SyntheticFieldGivesKnownTRE)
     moving.push_back(q);
     expected.push_back(0.1 * i);
     initial.push_back(p.EuclideanDistanceTo(q));
+    meanOffset += dir * (0.1 * i / 50.0);
+    meanInitial += (q - p) / 50.0;
   }
   const auto errors = dmrtools::LandmarkErrors(fixed, moving, field.GetPointer());
   for (size_t i = 0; i < errors.size(); ++i)
@@ -270,6 +275,16 @@ TEST(Landmarks, SyntheticFieldGivesKnownTRE)
   EXPECT_NEAR(tre.std, want.std, 1e-4);
   EXPECT_NEAR(tre.p95, want.p95, 1e-4);
   EXPECT_NEAR(tre.max, 4.9, 1e-4);
+  // the mean residual is the landmarks' shared offset: minus the mean of the offsets added to the moving landmarks
+  const auto residual = dmrtools::MeanLandmarkResidual(fixed, moving, field.GetPointer());
+  const auto residual0 = dmrtools::MeanLandmarkResidual<FieldType>(fixed, moving, nullptr);
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    EXPECT_NEAR(residual[k], -meanOffset[k], 2e-5) << "axis " << k;
+    EXPECT_NEAR(residual0[k], -meanInitial[k], 1e-12) << "axis " << k;
+  }
+  EXPECT_LE(residual.GetNorm(), tre.mean);
+  EXPECT_GT(meanOffset.GetNorm(), 0.05); // the test can tell a wrong sign or a missing field
   // the initial TRE ignores the field: plain distances
   const auto before = dmrtools::InitialTargetRegistrationError<3>(fixed, moving);
   EXPECT_NEAR(before.mean, dmrtools::SummarizeErrors(initial).mean, 1e-12);

@@ -508,6 +508,11 @@ run-3d)
   echo "TRE mean before $tre0, after $tre1"
   check "report: tre_initial_mm.mean is 1 mm (the landmarks are 1 voxel apart)" awk_true "${tre0:-0} == 1"
   check "report: tre_mm.mean is a number below the initial one" awk_true "${tre1:-99} < 1"
+  check "report: the landmarks' shared offset, moving = fixed + 1 voxel along x" \
+    grep -q '"tre_initial_mean_residual_mm": \[-1, 0, 0\],' "$out/report.json"
+  res=$(sed -n 's/^ *"tre_mean_residual_mm": \[\([^]]*\)\],$/\1/p' "$out/report.json" | tr -d ,)
+  check "report: tre_mean_residual_mm ($res) is no longer than tre_mm.mean" \
+    awk -v t="${tre1:-0}" -v r="${res:-x}" 'BEGIN { if (split(r, v, " ") != 3) exit 1; exit !(sqrt(v[1]^2 + v[2]^2 + v[3]^2) <= t * (1 + 1e-5)) }'
   rss=$(json_number "$out/report.json" peak_rss_mb)
   check "report: peak_rss_mb is positive ('$rss')" awk_true "${rss:-0} > 0"
   check "report: moving_resampled is false for images on one grid" grep -q '"moving_resampled": false' "$out/report.json"
