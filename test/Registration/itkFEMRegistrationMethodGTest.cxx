@@ -103,7 +103,7 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, RegularGridSize, 6u);
   DMR_EXPECT_SET_GET(method, ReinitializationInterval, 3u);
   DMR_EXPECT_SET_GET(method, SolverTolerance, 1e-8);
-  method->SetSolverTolerance(1.0); // clamped to the loosest tolerance that still solves
+  method->SetSolverTolerance(1.0); // clamped to the loosest tolerance allowed
   EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
   method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least
   EXPECT_EQ(method->GetNumberOfNodes(), 4u);
