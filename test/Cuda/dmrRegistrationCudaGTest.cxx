@@ -695,6 +695,72 @@ TEST(CudaRegistration, SafeguardedStepsMatchCPU2D)
   EXPECT_GT(halved, 5u);
 }
 
+namespace
+{
+/** ComputeInverse on both back-ends: the same inverse field (the device carries it with the CPU's rule), which
+ * undoes the forward field; the forward field is the one of a run without the inverse. energyRatio 3.0 makes the
+ * safeguard halve steps (the inverse must follow the accepted step only). */
+template <unsigned int D>
+void
+InversesAgree(unsigned int nodes, unsigned int iterations, unsigned int n, double energyRatio)
+{
+  auto cpu = Registration<D>(Backend::CPU, MeshMode::Dynamic, nodes, iterations, n, energyRatio);
+  auto gpu = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n, energyRatio);
+  auto plain = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n, energyRatio);
+  cpu->ComputeInverseOn();
+  gpu->ComputeInverseOn();
+  cpu->Update();
+  gpu->Update();
+  plain->Update();
+  ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
+  ASSERT_NE(cpu->GetInverseDisplacementField(), nullptr);
+  ASSERT_NE(gpu->GetInverseDisplacementField(), nullptr);
+  EXPECT_EQ(plain->GetInverseDisplacementField(), nullptr);
+  size_t halved = 0;
+  for (const auto & r : gpu->GetHistory())
+  {
+    halved += r.stepScale < 1.0 ? 1 : 0;
+  }
+  const double inverseDifference =
+    MaxDifferenceInVoxels(cpu->GetInverseDisplacementField(), gpu->GetInverseDisplacementField());
+  const double forwardDifference = MaxDifferenceInVoxels(cpu->GetDisplacementField(), gpu->GetDisplacementField());
+  const double plainDifference = MaxDifferenceInVoxels(plain->GetDisplacementField(), gpu->GetDisplacementField());
+  const auto   consistency =
+    itk::dmr::InverseConsistency(gpu->GetDisplacementField(), gpu->GetInverseDisplacementField(), nullptr);
+  double h = gpu->GetDisplacementField()->GetSpacing()[0];
+  double maxV = 0.0;
+  for (size_t p = 0; p < gpu->GetDisplacementField()->GetLargestPossibleRegion().GetNumberOfPixels(); ++p)
+  {
+    maxV = std::max(maxV, static_cast<double>(gpu->GetInverseDisplacementField()->GetBufferPointer()[p].GetNorm()));
+  }
+  std::cout << D << "D inverse: max |v| " << maxV << " mm, CPU/GPU max difference " << inverseDifference
+            << " voxel (forward " << forwardDifference << ", against a run without the inverse " << plainDifference
+            << "); |u(x) + v(x + u(x))| mean " << consistency.mean << " max " << consistency.max << " mm; " << halved
+            << " steps halved" << std::endl;
+  EXPECT_GT(maxV, 1.0);
+  EXPECT_LT(inverseDifference, 0.05);
+  EXPECT_LT(forwardDifference, 0.05);
+  EXPECT_EQ(plainDifference, 0.0);       // the inverse does not change the registration
+  EXPECT_LT(consistency.mean, 0.25 * h); // 2D at 30 times the usual step: 0.125 voxel; 3D: 0.012 voxel
+  if (energyRatio > 1.0)
+  {
+    EXPECT_GT(halved, 3u);
+  }
+}
+} // namespace
+
+TEST(CudaRegistration, InverseMatchesCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  InversesAgree<2>(40, 40, 96, 3.0);
+}
+
+TEST(CudaRegistration, InverseMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  InversesAgree<3>(150, 20, 40, 0.1);
+}
+
 // the elastic systems solved on the device (matrix-free CG) instead of the CPU: the same runs
 TEST(CudaRegistration, DeviceSolveRunMatchesCPU2D)
 {

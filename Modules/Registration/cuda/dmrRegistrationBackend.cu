@@ -1543,6 +1543,7 @@ struct RegistrationContext::Impl
   DeviceBuffer<uint8_t>            mask;
   bool                             hasMask{ false };
   DeviceBuffer<float>              w, bufferA, bufferB, force, density;
+  DeviceBuffer<float>              inverse;             // v of W^-1 (EnableInverse), else empty
   DeviceBuffer<float> *            previous{ nullptr }; // the buffer holding w before the last ApplyUpdate
   DeviceBuffer<int>                owner;
   DeviceBuffer<double>             sums;
@@ -1625,6 +1626,15 @@ struct RegistrationContext::Impl
                             mu };
   }
 
+  /** u = scale x sum_a phi_a(x) nodalU_a into a, then exp(u) by scaling and squaring (the CPU's rule for the number
+   * of squarings), ping-ponging between a and b (two of the update buffers): on return b holds exp(u), a is free. */
+  void
+  ExponentialOfUpdate(const double * nodalU,
+                      double         scale,
+                      float *&       a,
+                      float *&       b,
+                      double &       maxUpdatePixels,
+                      unsigned int & squarings);
   size_t
   Bytes() const
   {
@@ -1638,6 +1648,7 @@ struct RegistrationContext::Impl
     }
     return s + BytesOf(mask,
                        w,
+                       inverse,
                        bufferA,
                        bufferB,
                        force,
@@ -2307,6 +2318,64 @@ RegistrationContext::SampleFieldAtNodes(double * nodal)
   });
 }
 
+void
+RegistrationContext::Impl::ExponentialOfUpdate(const double * nodalU,
+                                               double         scale,
+                                               float *&       a,
+                                               float *&       b,
+                                               double &       maxUpdatePixels,
+                                               unsigned int & squarings)
+{
+  Impl &          m = *this;
+  const long long n = m.grid.n;
+  const long long values = n * m.dimension;
+  const unsigned  blocks = GridBlocks(n);
+  m.nodal.Upload(nodalU, m.numberOfNodes * m.dimension);
+  m.scratch64.Zero();
+  if (m.dimension == 2)
+  {
+    InterpolateKernel<2>
+      <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+    CheckLaunch("InterpolateKernel");
+    NormsKernel<2><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
+  }
+  else
+  {
+    InterpolateKernel<3>
+      <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
+    CheckLaunch("InterpolateKernel");
+    NormsKernel<3><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
+  }
+  CheckLaunch("NormsKernel");
+  unsigned long long bits[2];
+  m.scratch64.Download(bits, 2);
+  double maxima[2];
+  std::memcpy(maxima, bits, sizeof(maxima));
+  maxUpdatePixels = maxima[0];
+  const double maxNorm = std::max(maxima[0], maxima[1]);
+  squarings = 0;
+  while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
+  {
+    ++squarings;
+  }
+  const float factor = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
+  ScaleKernel<<<GridBlocks(values), Threads>>>(a, b, values, factor);
+  CheckLaunch("ScaleKernel");
+  for (unsigned int s = 0; s < squarings; ++s)
+  {
+    if (m.dimension == 2)
+    {
+      ComposeKernel<2><<<blocks, Threads>>>(m.grid, b, b, a);
+    }
+    else
+    {
+      ComposeKernel<3><<<blocks, Threads>>>(m.grid, b, b, a);
+    }
+    CheckLaunch("ComposeKernel (squaring)");
+    std::swap(a, b);
+  }
+}
+
 Status
 RegistrationContext::ApplyUpdate(const double * nodalU,
                                  double         scale,
@@ -2316,54 +2385,10 @@ RegistrationContext::ApplyUpdate(const double * nodalU,
   return Guard([&] {
     Impl &          m = *m_Impl;
     const long long n = m.grid.n;
-    const long long values = n * m.dimension;
     const unsigned  blocks = GridBlocks(n);
-    m.nodal.Upload(nodalU, m.numberOfNodes * m.dimension);
-    m.scratch64.Zero();
-    float * a = m.bufferA.Data();
-    float * b = m.bufferB.Data();
-    if (m.dimension == 2)
-    {
-      InterpolateKernel<2>
-        <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
-      CheckLaunch("InterpolateKernel");
-      NormsKernel<2><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
-    }
-    else
-    {
-      InterpolateKernel<3>
-        <<<blocks, Threads>>>(m.grid, m.owner.Data(), m.affine.Data(), m.elements.Data(), m.nodal.Data(), scale, a);
-      CheckLaunch("InterpolateKernel");
-      NormsKernel<3><<<ReductionBlocks(n), Threads>>>(m.grid, a, m.scratch64.Data());
-    }
-    CheckLaunch("NormsKernel");
-    unsigned long long bits[2];
-    m.scratch64.Download(bits, 2);
-    double maxima[2];
-    std::memcpy(maxima, bits, sizeof(maxima));
-    maxUpdatePixels = maxima[0];
-    const double maxNorm = std::max(maxima[0], maxima[1]);
-    squarings = 0;
-    while (maxNorm / std::ldexp(1.0, static_cast<int>(squarings)) > 0.5 && squarings < 30)
-    {
-      ++squarings;
-    }
-    const float factor = static_cast<float>(std::ldexp(1.0, -static_cast<int>(squarings)));
-    ScaleKernel<<<GridBlocks(values), Threads>>>(a, b, values, factor);
-    CheckLaunch("ScaleKernel");
-    for (unsigned int s = 0; s < squarings; ++s)
-    {
-      if (m.dimension == 2)
-      {
-        ComposeKernel<2><<<blocks, Threads>>>(m.grid, b, b, a);
-      }
-      else
-      {
-        ComposeKernel<3><<<blocks, Threads>>>(m.grid, b, b, a);
-      }
-      CheckLaunch("ComposeKernel (squaring)");
-      std::swap(a, b);
-    }
+    float *         a = m.bufferA.Data();
+    float *         b = m.bufferB.Data();
+    m.ExponentialOfUpdate(nodalU, scale, a, b, maxUpdatePixels, squarings);
     // b = exp(u); W <- W o exp(u): a = b + w(x + b)
     if (m.dimension == 2)
     {
@@ -2435,6 +2460,63 @@ RegistrationContext::DownloadPhysicalField(const double * direction, float * hos
     CheckLaunch("RotateKernel");
     rotated.Download(host, m.numberOfPixels * D);
   });
+}
+
+Status
+RegistrationContext::EnableInverse(const float * host)
+{
+  return Guard([&] {
+    Impl &       m = *m_Impl;
+    const size_t values = m.numberOfPixels * m.dimension;
+    m.inverse.Resize(values);
+    if (host)
+    {
+      m.inverse.Upload(host, values);
+    }
+    else
+    {
+      m.inverse.Zero();
+    }
+    Check(cudaStreamSynchronize(nullptr), "EnableInverse");
+    m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+Status
+RegistrationContext::ApplyInverseUpdate(const double * nodalU, double scale)
+{
+  return Guard([&] {
+    Impl & m = *m_Impl;
+    if (m.inverse.Size() == 0)
+    {
+      throw std::runtime_error("ApplyInverseUpdate without EnableInverse");
+    }
+    // both update buffers are free once the step is accepted (the previous w is no longer needed)
+    m.previous = nullptr;
+    float *      a = m.bufferA.Data();
+    float *      b = m.bufferB.Data();
+    double       maxUpdate = 0.0;
+    unsigned int squarings = 0;
+    m.ExponentialOfUpdate(nodalU, scale, a, b, maxUpdate, squarings);
+    // v <- exp(u) o v: a = v + b(x + v)
+    const unsigned blocks = GridBlocks(m.grid.n);
+    if (m.dimension == 2)
+    {
+      ComposeKernel<2><<<blocks, Threads>>>(m.grid, b, m.inverse.Data(), a);
+    }
+    else
+    {
+      ComposeKernel<3><<<blocks, Threads>>>(m.grid, b, m.inverse.Data(), a);
+    }
+    CheckLaunch("ComposeKernel (inverse)");
+    std::swap(m.inverse, a == m.bufferA.Data() ? m.bufferA : m.bufferB);
+  });
+}
+
+Status
+RegistrationContext::DownloadInverse(float * host) const
+{
+  return Guard([&] { m_Impl->inverse.Download(host, m_Impl->numberOfPixels * m_Impl->dimension); });
 }
 
 Status

@@ -186,6 +186,17 @@ public:
   /** Sets w from the host (grid frame). */
   Status
   UploadField(const float * host);
+  /** Keeps the inverse transformation's field v on the device from now on (one more field): v = the host's values
+   * (grid frame), or 0 for nullptr. */
+  Status
+  EnableInverse(const float * host);
+  /** v <- exp(u) o v, with u(x) = scale x sum_a phi_a(x) nodalU_a (the CPU's ComposeFields(exp(u), v)); called with
+   * the accepted update's negated scale after ApplyUpdate, whose RevertUpdate is no longer possible afterwards. */
+  Status
+  ApplyInverseUpdate(const double * nodalU, double scale);
+  /** Host copy of v (numberOfPixels x dimension floats, grid frame). */
+  Status
+  DownloadInverse(float * host) const;
 
   /** Largest device memory this context held at once (bytes), and the device's used memory peak seen (bytes). */
   size_t

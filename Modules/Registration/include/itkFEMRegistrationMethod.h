@@ -149,6 +149,22 @@ public:
    * iteration's force, SSD and beta are those at W_0. Without it W_0 is the identity. */
   itkSetInputMacro(InitialDisplacementField, DisplacementFieldType);
   itkGetInputMacro(InitialDisplacementField, DisplacementFieldType);
+  /** Also compute the inverse transformation W^-1 (default off). Every accepted update W <- W o exp(s u) has the
+   * inverse exp(-s u) (scaling and squaring of the negated update), so W^-1 <- exp(-s u) o W^-1 is carried along the
+   * iterations: one more exponential and composition per iteration, and one more field in memory (both back-ends).
+   * The result, GetInverseDisplacementField(), lies on the fixed image's grid (as ANTs' inverse warp does): a moving
+   * point y maps to the fixed point y + v(y). Its consistency with the forward field, |u(x) + v(x + u(x))|, is of the
+   * order of the interpolation error of the compositions (docs/benchmarks.md), also where the deformation is too large
+   * for a fixed-point inversion of the final field. With an InitialDisplacementField, its inverse must be given as
+   * InitialInverseDisplacementField. */
+  itkSetMacro(ComputeInverse, bool);
+  itkGetConstMacro(ComputeInverse, bool);
+  itkBooleanMacro(ComputeInverse);
+  /** The inverse of InitialDisplacementField, W_0^-1(y) = y + v_0(y) (fixed grid, physical frame, mm), where the
+   * inverse transformation is computed (ComputeInverse); e.g. the inverse of an affine pre-alignment made into a
+   * field. Ignored otherwise. */
+  itkSetInputMacro(InitialInverseDisplacementField, DisplacementFieldType);
+  itkGetInputMacro(InitialInverseDisplacementField, DisplacementFieldType);
 
   itkSetClampMacro(NumberOfIterations, unsigned int, 1, NumericTraits<unsigned int>::max());
   itkGetConstMacro(NumberOfIterations, unsigned int);
@@ -286,6 +302,14 @@ public:
   GetTransform();
   DisplacementFieldType *
   GetDisplacementField();
+  /** The inverse of the transformation's displacement field (see ComputeInverse), on the fixed grid in mm, after a run
+   * with ComputeInverse on (nullptr otherwise). The transform output carries it too
+   * (DisplacementFieldTransform::GetInverseDisplacementField, so that GetInverseTransform() works). */
+  const DisplacementFieldType *
+  GetInverseDisplacementField() const
+  {
+    return m_InverseDisplacementField.GetPointer();
+  }
 
 protected:
   FEMRegistrationMethod();
@@ -312,9 +336,13 @@ protected:
 private:
   void
   WriteGridFieldToImage(const std::vector<float> & grid, DisplacementFieldType * image) const;
-  /** The initial displacement field in the fixed grid frame (n x D floats), for w at the start. */
+  /** A displacement field on the fixed grid (the initial field or its inverse) in the fixed grid frame (n x D
+   * floats), for w (or the inverse) at the start. */
   void
-  InitialGridField(std::vector<float> & w) const;
+  InitialGridField(const DisplacementFieldType * initial, std::vector<float> & w) const;
+  /** The inverse field image from its grid-frame floats (ComputeInverse). */
+  void
+  MakeInverseField(const std::vector<float> & inverse);
   void
   MakeTransformOutput();
   /** The Regular or Static mode's mesh into m_StaticSimplexMesh (timed as mesh construction). */
@@ -385,6 +413,7 @@ private:
   double            m_SolverTolerance{ 1e-6 };
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
+  bool              m_ComputeInverse{ false };
 
   double                       m_Beta{ 0.0 }; // in the density filter's units; GetBeta() converts
   unsigned int                 m_CurrentIteration{ 0 };
@@ -394,17 +423,18 @@ private:
   std::string                  m_StopConditionDescription;
   Timing                       m_Timing;
 
-  typename DensityFilterType::Pointer  m_DensityFilter;
-  typename CVTFilterType::Pointer      m_CVTFilter;
-  typename DualMeshFilterType::Pointer m_DualMeshFilter;
-  typename SolverType::Pointer         m_Solver;
-  typename LabelImageType::Pointer     m_Labels;
-  SimplexMeshType                      m_StaticSimplexMesh;
-  SimplexMeshType                      m_DynamicSimplexMesh; // the CUDA path builds the dual mesh itself
-  const SimplexMeshType *              m_CurrentMesh{ nullptr };
-  typename MeshType::Pointer           m_CurrentItkMesh;
-  size_t                               m_CurrentMeshVersion{ 0 };
-  size_t                               m_CurrentItkMeshVersion{ 0 };
+  typename DensityFilterType::Pointer     m_DensityFilter;
+  typename CVTFilterType::Pointer         m_CVTFilter;
+  typename DualMeshFilterType::Pointer    m_DualMeshFilter;
+  typename SolverType::Pointer            m_Solver;
+  typename LabelImageType::Pointer        m_Labels;
+  typename DisplacementFieldType::Pointer m_InverseDisplacementField;
+  SimplexMeshType                         m_StaticSimplexMesh;
+  SimplexMeshType                         m_DynamicSimplexMesh; // the CUDA path builds the dual mesh itself
+  const SimplexMeshType *                 m_CurrentMesh{ nullptr };
+  typename MeshType::Pointer              m_CurrentItkMesh;
+  size_t                                  m_CurrentMeshVersion{ 0 };
+  size_t                                  m_CurrentItkMeshVersion{ 0 };
 };
 } // namespace itk
 

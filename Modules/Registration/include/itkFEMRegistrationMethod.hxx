@@ -44,6 +44,7 @@ FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
   this->AddOptionalInputName("StaticMesh");
   this->AddOptionalInputName("FixedMask");
   this->AddOptionalInputName("InitialDisplacementField");
+  this->AddOptionalInputName("InitialInverseDisplacementField");
   this->SetNumberOfRequiredOutputs(2);
   this->SetNthOutput(0, this->MakeOutput(0));
   this->SetNthOutput(1, this->MakeOutput(1));
@@ -127,6 +128,11 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
   // NaN EnergyRatio gave beta NaN and a run that moved nothing, an infinite Lambda a stiffness of infinities and the
   // stop condition "the images already match", an infinite EnergyRatio a NaN density. Values far beyond any use
   // (1e30) are refused as well, so that the products of the elastic constants, beta and the forces stay finite.
+  if (m_ComputeInverse && this->GetInitialDisplacementField() && !this->GetInitialInverseDisplacementField())
+  {
+    itkExceptionMacro("ComputeInverse with an InitialDisplacementField needs the inverse of that field "
+                      "(SetInitialInverseDisplacementField): the inverse transformation starts from it");
+  }
   for (const auto & [name, value] : { std::make_pair("Lambda", m_Lambda),
                                       std::make_pair("Mu", m_Mu),
                                       std::make_pair("EnergyRatio", m_EnergyRatio),
@@ -215,7 +221,10 @@ FEMRegistrationMethod<TF, TM, TD>::VerifyInputInformation() ITKv5_CONST
   for (const auto & [image, name] :
        { std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetFixedMask()), "the fixed mask"),
          std::make_pair(static_cast<const ImageBase<ImageDimension> *>(this->GetInitialDisplacementField()),
-                        "the initial displacement field") })
+                        "the initial displacement field"),
+         std::make_pair(static_cast<const ImageBase<ImageDimension> *>(
+                          m_ComputeInverse ? this->GetInitialInverseDisplacementField() : nullptr),
+                        "the initial inverse displacement field") })
   {
     const std::string why =
       image ? dmr::GridMismatchAtDefaultTolerances<ImageDimension>(this->GetFixedImage(), image) : std::string();
@@ -296,6 +305,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   requireFinite("fixed image", "intensity", fixed);
   requireFinite("moving image", "intensity", moving);
   requireFinite("initial displacement field", "value", this->GetInitialDisplacementField());
+  if (m_ComputeInverse)
+  {
+    requireFinite("initial inverse displacement field", "value", this->GetInitialInverseDisplacementField());
+  }
   for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
   {
     if (!(range.second > range.first))
@@ -328,8 +341,18 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   this->ConfigureStages();
   if (this->GetInitialDisplacementField())
   {
-    this->InitialGridField(w);
+    this->InitialGridField(this->GetInitialDisplacementField(), w);
     this->WriteGridFieldToImage(w, field); // the density filter reads W from the field image
+  }
+  // ComputeInverse: W^-1 in the grid frame, carried along as W^-1 <- exp(-s u) o W^-1
+  std::vector<float> inverse;
+  if (m_ComputeInverse)
+  {
+    inverse.assign(n * D, 0.0f);
+    if (this->GetInitialDisplacementField())
+    {
+      this->InitialGridField(this->GetInitialInverseDisplacementField(), inverse);
+    }
   }
   dmr::BarycentricMap<D> bary;
   std::vector<double>    nodalForce, nodalU, nodalW;
@@ -458,6 +481,15 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     if (record.stepScale > 0.0)
     {
       w.swap(update);
+      if (m_ComputeInverse)
+      {
+        // W^-1 <- exp(-s u) o W^-1: the negated update has the same bounds, so the same number of squarings
+        const auto t1 = Clock::now();
+        bary.Interpolate(nodalU, -record.stepScale / m_Beta, update.data(), threader);
+        dmr::ExponentialField<D>(grid, update.data(), expUpdate.data(), update, threader);
+        dmr::ComposeFields<D>(grid, expUpdate.data(), inverse.data(), inverse.data(), threader);
+        m_Timing.update += seconds(t1, Clock::now());
+      }
     }
     else
     {
@@ -490,6 +522,11 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   for (auto * v : { &w, &update, &expUpdate })
   {
     std::vector<float>().swap(*v);
+  }
+  if (m_ComputeInverse)
+  {
+    this->MakeInverseField(inverse);
+    std::vector<float>().swap(inverse);
   }
   bary = dmr::BarycentricMap<D>();
   m_DensityFilter->ReleaseInternalBuffers();
@@ -531,6 +568,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetMu(m_Mu);
   m_Solver->SetTolerance(m_SolverTolerance);
   m_Labels = nullptr;
+  m_InverseDisplacementField = nullptr;
 
   m_History.clear();
   m_Timing = Timing();
@@ -719,7 +757,37 @@ FEMRegistrationMethod<TF, TM, TD>::MakeTransformOutput()
   });
   auto transform = TransformType::New();
   transform->SetDisplacementField(transformField);
+  if (m_InverseDisplacementField)
+  {
+    auto         inverseField = TransformFieldType::New();
+    const auto * isrc = m_InverseDisplacementField->GetBufferPointer();
+    inverseField->CopyInformation(field);
+    inverseField->SetRegions(field->GetLargestPossibleRegion());
+    inverseField->Allocate();
+    auto * idst = inverseField->GetBufferPointer();
+    dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
+      for (size_t p = b; p < e; ++p)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          idst[p][k] = isrc[p][k];
+        }
+      }
+    });
+    transform->SetInverseDisplacementField(inverseField);
+  }
   this->GetTransformOutput()->Set(transform);
+}
+
+template <typename TF, typename TM, typename TD>
+void
+FEMRegistrationMethod<TF, TM, TD>::MakeInverseField(const std::vector<float> & inverse)
+{
+  m_InverseDisplacementField = DisplacementFieldType::New();
+  m_InverseDisplacementField->CopyInformation(this->GetFixedImage());
+  m_InverseDisplacementField->SetRegions(this->GetFixedImage()->GetLargestPossibleRegion());
+  m_InverseDisplacementField->Allocate();
+  this->WriteGridFieldToImage(inverse, m_InverseDisplacementField);
 }
 
 namespace dmr
@@ -849,13 +917,12 @@ FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & c
 
 template <typename TF, typename TM, typename TD>
 void
-FEMRegistrationMethod<TF, TM, TD>::InitialGridField(std::vector<float> & w) const
+FEMRegistrationMethod<TF, TM, TD>::InitialGridField(const DisplacementFieldType * initial, std::vector<float> & w) const
 {
   // w = Direction^T u_0: the grid frame of the fixed image (the inverse of WriteGridFieldToImage's rotation)
-  const auto &                  dir = this->GetFixedImage()->GetDirection();
-  const DisplacementFieldType * initial = this->GetInitialDisplacementField();
-  const auto *                  u0 = initial->GetBufferPointer();
-  const size_t                  n = initial->GetBufferedRegion().GetNumberOfPixels();
+  const auto & dir = this->GetFixedImage()->GetDirection();
+  const auto * u0 = initial->GetBufferPointer();
+  const size_t n = initial->GetBufferedRegion().GetNumberOfPixels();
   w.resize(n * ImageDimension);
   dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
     for (size_t p = b; p < e; ++p)
@@ -916,8 +983,17 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   if (this->GetInitialDisplacementField())
   {
     std::vector<float> w0(n * D);
-    this->InitialGridField(w0);
+    this->InitialGridField(this->GetInitialDisplacementField(), w0);
     dmr::ThrowOnError(context.UploadField(w0.data()), "initial field upload");
+  }
+  if (m_ComputeInverse)
+  {
+    std::vector<float> v0;
+    if (this->GetInitialDisplacementField())
+    {
+      this->InitialGridField(this->GetInitialInverseDisplacementField(), v0);
+    }
+    dmr::ThrowOnError(context.EnableInverse(v0.empty() ? nullptr : v0.data()), "inverse field");
   }
   m_Timing.registration += seconds(t0, Clock::now());
 
@@ -1137,6 +1213,13 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         dmr::ThrowOnError(context.RevertUpdate(), "update");
         m_Timing.update += seconds(t1, Clock::now());
       });
+    if (m_ComputeInverse && record.stepScale > 0.0)
+    {
+      // W^-1 <- exp(-s u) o W^-1 (as on the CPU)
+      const auto t1 = Clock::now();
+      dmr::ThrowOnError(context.ApplyInverseUpdate(nodalU.data(), -record.stepScale / m_Beta), "inverse update");
+      m_Timing.update += seconds(t1, Clock::now());
+    }
     m_Timing.registration += seconds(t0, Clock::now());
 
     this->AppendToHistory(record);
@@ -1182,6 +1265,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     dmr::ThrowOnError(context.DownloadField(w.data()), "field download");
     this->WriteGridFieldToImage(w, field);
   }
+  if (m_ComputeInverse)
+  {
+    std::vector<float> v(n * D);
+    dmr::ThrowOnError(context.DownloadInverse(v.data()), "inverse field download");
+    this->MakeInverseField(v);
+  }
   // everything the back-end allocated: the registration context at its peak, and the CVT optimiser's and the label
   // summary's buffers, which it holds throughout the iterations
   m_DeviceBytes = context.AllocatedBytes() + cvt.AllocatedBytes() + summarizer.AllocatedBytes();
@@ -1225,6 +1314,8 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
+  os << indent << "ComputeInverse: " << m_ComputeInverse << std::endl;
+  os << indent << "InverseDisplacementField: " << (m_InverseDisplacementField ? "computed" : "none") << std::endl;
   os << indent << "Beta: " << this->GetBeta() << std::endl;
   os << indent << "CurrentIteration: " << m_CurrentIteration << std::endl;
   os << indent << "FinalSSD: " << m_FinalSSD << std::endl;

@@ -134,6 +134,21 @@ RegistrationContext::DownloadField(float *) const
   return Unavailable();
 }
 Status
+RegistrationContext::EnableInverse(const float *)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::ApplyInverseUpdate(const double *, double)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::DownloadInverse(float *) const
+{
+  return Unavailable();
+}
+Status
 RegistrationContext::UploadField(const float *)
 {
   return Unavailable();
