@@ -285,6 +285,42 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
   }
   return field;
 }
+/** The inverse of the transform file's transformation, v_0(y) = T^-1(y) - y, on the grid of `reference` (physical
+ * frame, mm, float vectors): what FEMRegistrationMethod's ComputeInverse starts from. Throws itk::ExceptionObject for
+ * a displacement field image (its inverse is not known exactly) and for a transform without an inverse (e.g. a
+ * B-spline), with a message that says so. */
+template <unsigned int D, typename TReference>
+typename itk::Image<itk::Vector<float, D>, D>::Pointer
+InitialInverseFieldOnGrid(const std::string & path, const TReference * reference)
+{
+  using FieldType = itk::Image<itk::Vector<float, D>, D>;
+  if (!IsTransformFileName(path))
+  {
+    itkGenericExceptionMacro(<< "the inverse of a displacement field given as the initial transformation is not "
+                                "known: give a transform file (e.g. the affine pre-alignment) or leave out --inverse");
+  }
+  const auto transform = ReadTransformFile<D>(path);
+  const auto inverse = transform->GetInverseTransform();
+  if (!inverse)
+  {
+    itkGenericExceptionMacro(<< "the " << transform->GetTransformTypeAsString()
+                             << " of the initial transformation has no inverse transform in ITK: give an invertible "
+                                "one (e.g. an affine) or leave out --inverse");
+  }
+  auto toField = itk::TransformToDisplacementFieldFilter<FieldType, double>::New();
+  toField->SetTransform(inverse);
+  toField->SetReferenceImage(reference);
+  toField->UseReferenceImageOn();
+  toField->Update();
+  typename FieldType::Pointer field = toField->GetOutput();
+  const auto                  p = itk::dmr::FirstNonFinitePixel(field.GetPointer());
+  if (p >= 0)
+  {
+    itkGenericExceptionMacro(<< "the inverse of the initial transformation is not finite at voxel "
+                             << field->ComputeIndex(static_cast<itk::OffsetValueType>(p)) << " of the fixed grid");
+  }
+  return field;
+}
 } // namespace dmrtools
 
 #endif

@@ -105,6 +105,7 @@ struct Options
   double      femTolerance{ 1e-6 };
   std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
   bool        landmarksInMM{ false };
+  bool        inverse{ false };
   bool        window{ false };
   double      windowLow{ 0.0 }, windowHigh{ 0.0 };
 };
@@ -135,6 +136,9 @@ const char * const Usage =
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
   "                         unknowns, on the CPU otherwise (default 300; 0: always on the GPU)\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
+  "  --inverse              also write inverse-displacement.nii.gz, the inverse transformation (on the fixed grid:\n"
+  "                         a moving point y maps to the fixed point y + v(y)), carried along the iterations as\n"
+  "                         W^-1 <- exp(-u) o W^-1; the report gets inverse_consistency_mm\n"
   "  --initial-transform FILE  start from this transformation (e.g. an affine pre-alignment): an ITK transform file\n"
   "                         (.tfm, .txt, .mat, .h5: ITK, ANTs, elastix's ITK export) or a displacement field image\n"
   "                         (mm, moving point = fixed point + u, LPS); the outputs hold it composed with the\n"
@@ -154,9 +158,9 @@ const char * const Usage =
   "  --help, --version\n"
   "outputs in D: warped.nii.gz, displacement.nii.gz (mm, on the fixed grid, moving point = fixed point + u; in ITK's\n"
   "  LPS frame: RAS tools such as nibabel or FSL must negate x and y),\n"
-  "  jacobian.nii.gz (det of I + grad u), energy.csv, mesh_NNNN.vtu + mesh.pvd, report.json; they replace those of an\n"
-  "  earlier run in D (its other mesh_NNNN.vtu files are removed), and an output that would replace an input is "
-  "refused\n";
+  "  jacobian.nii.gz (det of I + grad u), with --inverse inverse-displacement.nii.gz, energy.csv, mesh_NNNN.vtu +\n"
+  "  mesh.pvd, report.json; they replace those of an earlier run in D (its other mesh_NNNN.vtu files and, without\n"
+  "  --inverse, its inverse-displacement.nii.gz are removed), and an output that would replace an input is refused\n";
 
 long
 ParseInteger(const std::string & flag, const std::string & value)
@@ -219,8 +223,9 @@ RefuseOutputsOverInputs(const Options & opt)
     inputs.emplace_back("--mesh", opt.mesh);
   }
   const std::string              report = opt.report.empty() ? "" : dmrtools::DirectoryEntry(opt.report);
-  const std::vector<std::string> written = { "warped.nii.gz", "displacement.nii.gz", "jacobian.nii.gz", "energy.csv",
-                                             "mesh.pvd",      "report.json" };
+  const std::vector<std::string> written = { "warped.nii.gz",   "displacement.nii.gz", "inverse-displacement.nii.gz",
+                                             "jacobian.nii.gz", "energy.csv",          "mesh.pvd",
+                                             "report.json" };
   // the name of the output in D that path is (empty if none)
   auto outputNamed = [&](const std::string & path) -> std::string {
     const std::string name = dmrtools::NameInDirectory(opt.outputDir, path);
@@ -271,6 +276,11 @@ ParseArguments(int argc, char * argv[])
     if (a == "--landmarks-in-mm")
     {
       opt.landmarksInMM = true;
+      continue;
+    }
+    if (a == "--inverse")
+    {
+      opt.inverse = true;
       continue;
     }
     if (a == "--version")
@@ -757,13 +767,17 @@ Run(const Options & opt)
     }
   }
   // --initial-transform: W_0 as a displacement field on the fixed grid (a transform file is evaluated there)
-  typename FieldType::Pointer initialField;
+  typename FieldType::Pointer initialField, initialInverseField;
   std::string                 initialKind;
   if (!opt.initialTransform.empty())
   {
     try
     {
       initialField = dmrtools::InitialFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer(), initialKind);
+      if (opt.inverse)
+      {
+        initialInverseField = dmrtools::InitialInverseFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer());
+      }
     }
     catch (const itk::ExceptionObject & e)
     {
@@ -980,6 +994,8 @@ Run(const Options & opt)
     method->SetFixedMask(mask);
   }
   method->SetInitialDisplacementField(initialField);
+  method->SetInitialInverseDisplacementField(initialInverseField);
+  method->SetComputeInverse(opt.inverse);
   method->SetNumberOfNodes(static_cast<itk::SizeValueType>(nodes));
   method->SetNumberOfIterations(static_cast<unsigned int>(opt.iterations));
   method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));
@@ -1175,6 +1191,24 @@ Run(const Options & opt)
   dmrtools::ThrowIfInterrupted();
   dmrtools::WriteImage(field, staging.Path("displacement.nii.gz"));
   dmrtools::ThrowIfInterrupted();
+  std::string inverseReport;
+  if (opt.inverse)
+  {
+    const auto * inverse = method->GetInverseDisplacementField();
+    dmrtools::WriteImage(inverse, staging.Path("inverse-displacement.nii.gz"));
+    // |u(x) + v(x + u(x))| and |v(y) + u(y + v(y))| (mm) where the point lands inside the grid: 0 for an exact inverse
+    const auto forward = itk::dmr::InverseConsistency(field, inverse, method->GetMultiThreader());
+    const auto backward = itk::dmr::InverseConsistency(inverse, field, method->GetMultiThreader());
+    auto       json = [](const itk::dmr::InverseConsistencyStatistics & s) {
+      std::ostringstream o;
+      o << "{\"mean\": " << s.mean << ", \"p95\": " << s.p95 << ", \"max\": " << s.max << ", \"count\": " << s.count
+        << "}";
+      return o.str();
+    };
+    inverseReport = "  \"inverse_consistency_mm\": {\"forward_then_inverse\": " + json(forward) +
+                    ", \"inverse_then_forward\": " + json(backward) + "},\n";
+    dmrtools::ThrowIfInterrupted();
+  }
   std::pair<double, double> jacobianRange;
   auto jacobian = itk::dmr::JacobianDeterminantImage(field, jacobianRange, method->GetMultiThreader());
   dmrtools::WriteImage(jacobian.GetPointer(), staging.Path("jacobian.nii.gz"));
@@ -1320,7 +1354,7 @@ Run(const Options & opt)
        << "  \"mssd_final\": " << method->GetFinalMSSD() << ",\n"
        << "  \"jacobian_min\": " << jacobianRange.first << ",\n"
        << "  \"jacobian_max\": " << jacobianRange.second << ",\n"
-       << evaluation << "  \"initial_transform\": "
+       << inverseReport << evaluation << "  \"initial_transform\": "
        << (initialField ? "{\"file\": \"" + dmrtools::JsonEscape(opt.initialTransform) + "\", \"kind\": \"" +
                             dmrtools::JsonEscape(initialKind) + "\"}"
                         : std::string("null"))
@@ -1373,12 +1407,17 @@ Run(const Options & opt)
         std::remove((opt.outputDir + "/" + name).c_str());
       }
     }
+    if (!opt.inverse) // an earlier run's inverse is not this run's
+    {
+      std::remove((opt.outputDir + "/inverse-displacement.nii.gz").c_str());
+    }
   });
   std::cout << "registered " << opt.moving << " -> " << opt.fixed << " in " << t.total << " s (" << history.size()
             << " iterations, " << meshMode << " mesh, SSD " << ssdInitial << " -> " << method->GetFinalSSD()
             << ", det J in [" << jacobianRange.first << ", " << jacobianRange.second << "])\n"
-            << "outputs in " << opt.outputDir << ": warped.nii.gz displacement.nii.gz jacobian.nii.gz energy.csv "
-            << "mesh.pvd report.json\n";
+            << "outputs in " << opt.outputDir << ": warped.nii.gz displacement.nii.gz "
+            << (opt.inverse ? "inverse-displacement.nii.gz " : "")
+            << "jacobian.nii.gz energy.csv mesh.pvd report.json\n";
   return EXIT_SUCCESS;
 }
 } // namespace

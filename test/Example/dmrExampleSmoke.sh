@@ -344,6 +344,36 @@ run-initial-transform)
     awk_true "$first_final > 0 && ($second_initial - $first_final)^2 <= (1e-6 * $first_final)^2"
   check "report: the kind is a displacement field" \
     grep -q '"kind": "displacement field"' "$W/again/report.json"
+  # --inverse: the inverse transformation starts from the translation's inverse, lies on the fixed grid and undoes the
+  # forward field (report: about 0.005 mm here; an inverse started from the identity would be off by the
+  # translation, 5 mm), and the forward field is that of the run without it
+  inv="$W/inverse"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$inv" \
+    --nodes 30 --iterations 5 --threads 2 --initial-transform "$W/translation.tfm" --inverse
+  cat "$W/stdout" "$W/stderr"
+  check "--inverse: registration exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check_run_outputs "$inv" 5 dynamic 30
+  check "--inverse: inverse-displacement.nii.gz lies on the fixed grid" \
+    "$CHECK" same-grid "$DATA/fixed.nii.gz" "$inv/inverse-displacement.nii.gz"
+  check "--inverse: the forward field is the one of the run without --inverse" \
+    cmp <(zcat "$out/displacement.nii.gz") <(zcat "$inv/displacement.nii.gz")
+  check "--inverse: stdout names the inverse" grep -q 'inverse-displacement.nii.gz' "$W/stdout"
+  consistency=$(sed -n 's/.*"forward_then_inverse": {"mean": \([-0-9.eE+]*\),.*"inverse_then_forward": {"mean": \([-0-9.eE+]*\),.*/\1 \2/p' \
+    "$inv/report.json")
+  echo "inverse consistency means (mm): $consistency"
+  check "report: inverse_consistency_mm means ($consistency) below 0.05 mm both ways" \
+    awk -v c="${consistency:-x}" 'BEGIN { if (split(c, m, " ") != 2) exit 1; exit !(m[1] < 0.05 && m[2] < 0.05) }'
+  # a later run into the same directory without --inverse does not leave the earlier run's inverse behind
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$inv" --nodes 30 --iterations 2 \
+    --threads 2
+  check "a run without --inverse into that directory exits 0" test "$RC" = 0
+  check "and removes the earlier run's inverse-displacement.nii.gz" test ! -e "$inv/inverse-displacement.nii.gz"
+  check "its report has no inverse_consistency_mm" bash -c "! grep -q inverse_consistency_mm '$inv/report.json'"
+  # the inverse of a displacement field given as the initial transformation is not known: refused
+  rm -f "$W/stdout" "$W/stderr"
+  expect_bad_input inverse-of-initial-field --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
+    --iterations 2 --initial-transform "$out/displacement.nii.gz" --inverse
   ;;
 bad-initial-transform)
   printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_3_3\nParameters: 4 -3 1\nFixedParameters:\n' \
