@@ -124,15 +124,15 @@ void
 FEMRegistrationMethod<TF, TM, TD>::VerifyPreconditions() ITKv5_CONST
 {
   Superclass::VerifyPreconditions();
-  // NaN passes itkSetClampMacro (every comparison with it is false), and infinity is clamped to the largest double: a
-  // NaN EnergyRatio gave beta NaN and a run that moved nothing, an infinite Lambda a stiffness of infinities and the
-  // stop condition "the images already match", an infinite EnergyRatio a NaN density. Values far beyond any use
-  // (1e30) are refused as well, so that the products of the elastic constants, beta and the forces stay finite.
   if (m_ComputeInverse && this->GetInitialDisplacementField() && !this->GetInitialInverseDisplacementField())
   {
     itkExceptionMacro("ComputeInverse with an InitialDisplacementField needs the inverse of that field "
                       "(SetInitialInverseDisplacementField): the inverse transformation starts from it");
   }
+  // NaN passes itkSetClampMacro (every comparison with it is false), and infinity is clamped to the largest double: a
+  // NaN EnergyRatio gave beta NaN and a run that moved nothing, an infinite Lambda a stiffness of infinities and the
+  // stop condition "the images already match", an infinite EnergyRatio a NaN density. Values far beyond any use
+  // (1e30) are refused as well, so that the products of the elastic constants, beta and the forces stay finite.
   for (const auto & [name, value] : { std::make_pair("Lambda", m_Lambda),
                                       std::make_pair("Mu", m_Mu),
                                       std::make_pair("EnergyRatio", m_EnergyRatio),
