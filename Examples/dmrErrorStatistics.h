@@ -19,15 +19,18 @@
 #define dmrErrorStatistics_h
 
 // Error summaries for the command-line tools and their tests: {mean, std, p95, max} of a list of distances in mm
-// (landmark TRE, dense displacement error), and the dense error |u_est - u_truth| of two displacement fields inside
-// a mask.
+// (landmark TRE, dense displacement error), the dense error |u_est - u_truth| of two displacement fields inside
+// a mask, and how far a field's inverse is from undoing it.
+#include "dmrFieldImage.h"
 #include "itkImage.h"
 #include "itkImageRegionConstIterator.h"
 #include "itkMacro.h"
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <limits>
 #include <ostream>
+#include <utility>
 #include <vector>
 
 namespace dmrtools
@@ -230,6 +233,52 @@ DisplacementMagnitudeInMask(const TField * field, const TMask * mask)
 {
   return detail::FieldDifferenceStatistics(
     field, static_cast<const TField *>(nullptr), mask, "DisplacementMagnitudeInMask");
+}
+/** How far v is from the inverse of u (two physical displacement fields on one grid, e.g. FEMRegistrationMethod's
+ * field and its inverse): first the errors |u(x) + v(x + u(x))| (mm) at the pixels x whose image x + u(x) lies inside
+ * the grid, then |v(y) + u(y + v(y))|, v and u sampled multilinearly. All zero for an exact inverse. Each field is
+ * brought to the grid frame once. */
+template <typename TField>
+std::pair<ErrorStatistics, ErrorStatistics>
+InverseConsistency(const TField * u, const TField * v, itk::MultiThreaderBase * threader)
+{
+  constexpr unsigned int D = TField::ImageDimension;
+  if (u->GetLargestPossibleRegion().GetSize() != v->GetLargestPossibleRegion().GetSize())
+  {
+    itkGenericExceptionMacro("InverseConsistency: the two fields must lie on one grid");
+  }
+  const auto grid = itk::dmr::Grid<D>::FromImage(u);
+  const auto ug = itk::dmr::ToGridFrame(u);
+  const auto vg = itk::dmr::ToGridFrame(v);
+  // |a(x) + b(x + a(x))| where defined, in pixel order (NaN marks a point that leaves the grid)
+  auto errors = [&](const std::vector<float> & a, const std::vector<float> & b) {
+    std::vector<double> error(grid.numberOfPixels, std::numeric_limits<double>::quiet_NaN());
+    itk::dmr::ParallelForChunks(threader, grid.numberOfPixels, [&](size_t begin, size_t end) {
+      itk::dmr::ForEachPixel(grid, begin, end, [&](size_t p, const std::array<int64_t, D> & idx) {
+        double c[D], s[D] = {};
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          c[k] = static_cast<double>(idx[k]) + static_cast<double>(a[p * D + k]) / grid.spacing[k];
+          if (!(c[k] >= 0.0 && c[k] <= static_cast<double>(grid.size[k] - 1)))
+          {
+            return;
+          }
+        }
+        itk::dmr::InterpolateAdd<D, D>(grid, b.data(), c, 1.0, s);
+        double e2 = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          const double e = static_cast<double>(a[p * D + k]) + s[k];
+          e2 += e * e;
+        }
+        error[p] = std::sqrt(e2);
+      });
+    });
+    error.erase(std::remove_if(error.begin(), error.end(), [](double e) { return std::isnan(e); }), error.end());
+    return SummarizeErrors(std::move(error));
+  };
+  const ErrorStatistics forward = errors(ug, vg);
+  return { forward, errors(vg, ug) };
 }
 } // namespace dmrtools
 

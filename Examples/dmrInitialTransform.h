@@ -226,6 +226,20 @@ ReadTransformFile(const std::string & path)
   return transform;
 }
 
+/** T(x) - x at the pixels of `reference` (physical frame, mm, float vectors). */
+template <unsigned int D, typename TReference>
+typename itk::Image<itk::Vector<float, D>, D>::Pointer
+TransformFieldOnGrid(const itk::Transform<double, D, D> * transform, const TReference * reference)
+{
+  using FieldType = itk::Image<itk::Vector<float, D>, D>;
+  auto toField = itk::TransformToDisplacementFieldFilter<FieldType, double>::New();
+  toField->SetTransform(transform);
+  toField->SetReferenceImage(reference);
+  toField->UseReferenceImageOn();
+  toField->Update();
+  return toField->GetOutput();
+}
+
 /** u_0 on the grid of `reference` (physical frame, mm, float vectors) from `path`: an ITK transform file
  * (IsTransformFileName), u_0(x) = T(x) - x, or a displacement field image of D components (mm, moving point = fixed
  * point + u), resampled linearly onto the reference grid where it lies on another one (nearest value beyond its
@@ -245,12 +259,7 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
     }
     const auto transform = ReadTransformFile<D>(path);
     kind = "transform " + transform->GetTransformTypeAsString();
-    auto toField = itk::TransformToDisplacementFieldFilter<FieldType, double>::New();
-    toField->SetTransform(transform);
-    toField->SetReferenceImage(reference);
-    toField->UseReferenceImageOn();
-    toField->Update();
-    field = toField->GetOutput();
+    field = TransformFieldOnGrid<D>(transform, reference);
   }
   else
   {
@@ -293,7 +302,6 @@ template <unsigned int D, typename TReference>
 typename itk::Image<itk::Vector<float, D>, D>::Pointer
 InitialInverseFieldOnGrid(const std::string & path, const TReference * reference)
 {
-  using FieldType = itk::Image<itk::Vector<float, D>, D>;
   if (!IsTransformFileName(path))
   {
     itkGenericExceptionMacro(<< "the inverse of a displacement field given as the initial transformation is not "
@@ -307,13 +315,8 @@ InitialInverseFieldOnGrid(const std::string & path, const TReference * reference
                              << " of the initial transformation has no inverse transform in ITK: give an invertible "
                                 "one (e.g. an affine) or leave out --inverse");
   }
-  auto toField = itk::TransformToDisplacementFieldFilter<FieldType, double>::New();
-  toField->SetTransform(inverse);
-  toField->SetReferenceImage(reference);
-  toField->UseReferenceImageOn();
-  toField->Update();
-  typename FieldType::Pointer field = toField->GetOutput();
-  const auto                  p = itk::dmr::FirstNonFinitePixel(field.GetPointer());
+  const auto field = TransformFieldOnGrid<D>(inverse, reference);
+  const auto p = itk::dmr::FirstNonFinitePixel(field.GetPointer());
   if (p >= 0)
   {
     itkGenericExceptionMacro(<< "the inverse of the initial transformation is not finite at voxel "
