@@ -26,14 +26,27 @@
 #include "itkImageIOBase.h"
 #include "itkMacro.h"
 #include "itksys/SystemTools.hxx"
+#include "vnl/algo/vnl_svd.h"
+#include "vnl/vnl_matrix.h"
+#include <zlib.h>
 #include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <future>
 #include <iterator>
+#include <limits>
+#include <memory>
+#include <sstream>
 #include <string>
+#include <system_error>
+#include <thread>
+#include <vector>
 
 namespace dmrtools
 {
@@ -832,6 +845,221 @@ CheckDicom(const std::string & path)
     }
   }
 }
+
+/** The first `bytes` bytes of path, decompressed when it is a gzip file (zlib reads other files as they are). */
+inline std::string
+DecompressedHead(const std::string & path, size_t bytes)
+{
+  std::string head(bytes, '\0');
+  gzFile      file = gzopen(path.c_str(), "rb");
+  if (!file)
+  {
+    return std::string();
+  }
+  const int got = gzread(file, &head[0], static_cast<unsigned int>(bytes));
+  gzclose(file);
+  head.resize(got > 0 ? static_cast<size_t>(got) : 0);
+  return head;
+}
+
+/** MetaImage: MetaIO reads NDims values for DimSize, ElementSpacing and Offset and NDims x NDims for TransformMatrix,
+ * from whatever NDims says; a header with NDims = -1e308 (or -2147483649) kept ITK 5.2's reader in that loop for
+ * good. Throws itk::ExceptionObject for a .mha/.mhd header whose NDims is not a number from 1 to 10. */
+inline void
+CheckMetaImageDimensions(const std::string & path)
+{
+  const std::string ext = Extension(path);
+  if (ext != ".mha" && ext != ".mhd")
+  {
+    return;
+  }
+  std::ifstream in(path, std::ios::binary);
+  std::string   line;
+  for (unsigned int count = 0; count < 1000 && std::getline(in, line) && line.size() < 4096; ++count)
+  {
+    const size_t eq = line.find('=');
+    if (eq == std::string::npos)
+    {
+      continue;
+    }
+    std::string key = line.substr(0, eq);
+    key.erase(key.find_last_not_of(" \t\r") + 1);
+    key.erase(0, key.find_first_not_of(" \t"));
+    if (key == "ElementDataFile")
+    {
+      return;
+    }
+    if (key != "NDims")
+    {
+      continue;
+    }
+    const std::string value = line.substr(eq + 1);
+    char *            end = nullptr;
+    const double      n = std::strtod(value.c_str(), &end);
+    if (end == value.c_str() || !(n >= 1.0 && n < 11.0))
+    {
+      std::string shown = value;
+      shown.erase(shown.find_last_not_of(" \t\r") + 1);
+      shown.erase(0, shown.find_first_not_of(" \t"));
+      throw itk::ExceptionObject(__FILE__,
+                                 __LINE__,
+                                 path + ": the MetaImage header's NDims (" + shown +
+                                   ") is not a number of dimensions from 1 to 10: the header is corrupt",
+                                 ITK_LOCATION);
+    }
+  }
+}
+
+/** Whether ITK 5.2's single-precision SVDs of a finite sform return: its NIfTI reader checks that the sform is an
+ * invertible affine transformation (IsAffine) by inverting the 4 x 4 matrix (sto_xyz: srow_x/y/z over 0 0 0 1) and,
+ * when that is well conditioned, its upper 3 x 3 part with vnl_svd<float> while it reads the header, and for some
+ * finite matrices LINPACK's ssvdc there never returns: entries whose squares overflow single precision (3e38, offsets
+ * included), and nearly singular matrices whose entries span 20 or more orders of magnitude (1e10 over 1.5e-33; found
+ * by mutating header fields, mapped with random matrices). No simple rule on the entries separates them, so the same
+ * two decompositions run here on a thread of their own, on a copy: when they have not returned within `wait`, the
+ * thread is left to spin until the process ends (the tools end with the error) and the answer is no. */
+inline bool
+SformDecompositionsReturn(const std::array<float, 12> & srow, std::chrono::milliseconds wait)
+{
+  auto        done = std::make_shared<std::promise<void>>();
+  const auto  returned = done->get_future();
+  std::thread probe;
+  try
+  {
+    probe = std::thread([srow, done] {
+      try
+      {
+        vnl_matrix<float> m(4, 4, 0.0f), top(3, 3);
+        for (unsigned int r = 0; r < 3; ++r)
+        {
+          for (unsigned int c = 0; c < 4; ++c)
+          {
+            m(r, c) = srow[4 * r + c];
+            if (c < 3)
+            {
+              top(r, c) = srow[4 * r + c];
+            }
+          }
+        }
+        m(3, 3) = 1.0f;
+        // the 3 x 3 part is inverted only when the 4 x 4 matrix is well enough conditioned to be invertible
+        vnl_svd<float> four(m);
+        if (four.well_condition() > std::numeric_limits<float>::epsilon())
+        {
+          vnl_svd<float> three(top);
+        }
+      }
+      catch (...) // (out of memory) the decompositions returned: ITK's reader reports what it meets
+      {
+      }
+      done->set_value();
+    });
+  }
+  catch (const std::system_error &)
+  {
+    return true; // no thread to spare (a limit on threads): ITK's reader is left to read the file, as before
+  }
+  probe.detach();
+  return returned.wait_for(wait) == std::future_status::ready;
+}
+
+/** The NIfTI-1 sform, before ITK 5.2's reader sees it: a NaN or infinite entry anywhere in srow_x/y/z aborts the
+ * process in that reader (vnl's assert_finite in the SVDs of SformDecompositionsReturn), and some finite sforms keep
+ * it from ever returning (tried when `decompose`). Throws itk::ExceptionObject for either, for a .nii, .nia, .hdr or
+ * .img file (gzipped or not); Analyze headers (no NIfTI magic) and headers with sform_code 0 have no sform. */
+inline void
+CheckNiftiSform(const std::string & path, bool decompose)
+{
+  std::string lower = itksys::SystemTools::LowerCase(path);
+  if (lower.size() > 3 && lower.compare(lower.size() - 3, 3, ".gz") == 0)
+  {
+    lower.resize(lower.size() - 3);
+  }
+  const std::string        ext = Extension(lower);
+  std::vector<std::string> headers;
+  if (ext == ".nii" || ext == ".nia" || ext == ".hdr")
+  {
+    headers.push_back(path);
+  }
+  else if (ext == ".img")
+  {
+    const std::string base = path.substr(0, lower.size() - 4); // the name as given, without .img[.gz]
+    headers = { base + ".hdr", base + ".hdr.gz", base + ".HDR" };
+  }
+  for (const std::string & header : headers)
+  {
+    if (!itksys::SystemTools::FileExists(header, true))
+    {
+      continue;
+    }
+    const std::string h = DecompressedHead(header, 348);
+    if (h.size() < 348)
+    {
+      return; // short: the reader and the size checks say so
+    }
+    const auto * p = reinterpret_cast<const unsigned char *>(h.data());
+    // the byte order as the NIfTI library tells it: from dim[0] (1..7), from sizeof_hdr only when dim[0] is 0 (it
+    // reads headers whose sizeof_hdr is wrong)
+    const int16_t dim0 = static_cast<int16_t>(p[40] | (p[41] << 8)),
+                  swapped = static_cast<int16_t>((p[40] << 8) | p[41]);
+    bool swap = false;
+    if (dim0 != 0)
+    {
+      if (dim0 < 1 || dim0 > 7)
+      {
+        if (swapped < 1 || swapped > 7)
+        {
+          return; // the reader refuses it
+        }
+        swap = true;
+      }
+    }
+    else if (LittleEndian32(p) != 348)
+    {
+      if (BigEndian32(p) != 348)
+      {
+        return; // the reader refuses it
+      }
+      swap = true;
+    }
+    if (!(p[344] == 'n' && (p[345] == 'i' || p[345] == '+') && p[346] == '1' && p[347] == 0))
+    {
+      return; // Analyze 7.5: no sform
+    }
+    const int16_t sformCode = static_cast<int16_t>(swap ? (p[254] << 8) | p[255] : p[254] | (p[255] << 8));
+    if (sformCode <= 0)
+    {
+      return;
+    }
+    std::array<float, 12> srow;
+    for (unsigned int i = 0; i < 12; ++i)
+    {
+      const unsigned char * at = p + 280 + 4 * i;
+      const uint32_t        bits = swap ? BigEndian32(at) : LittleEndian32(at);
+      std::memcpy(&srow[i], &bits, sizeof(float));
+      if (!std::isfinite(srow[i]))
+      {
+        std::ostringstream what;
+        what << path << ": the NIfTI header's sform (sform_code " << sformCode << ") has srow_"
+             << static_cast<char>('x' + i / 4) << "[" << i % 4 << "] = " << srow[i]
+             << ", not a finite number: the header is corrupt";
+        throw itk::ExceptionObject(__FILE__, __LINE__, what.str(), ITK_LOCATION);
+      }
+    }
+    if (decompose && !SformDecompositionsReturn(srow, std::chrono::seconds(2)))
+    {
+      std::ostringstream what;
+      what << path << ": the NIfTI header's sform (sform_code " << sformCode << ") is (";
+      for (unsigned int i = 0; i < 12; ++i)
+      {
+        what << (i == 0 ? "" : (i % 4 == 0 ? "; " : ", ")) << srow[i];
+      }
+      what << "), which ITK's reader cannot take apart (its SVD does not return): the header is corrupt";
+      throw itk::ExceptionObject(__FILE__, __LINE__, what.str(), ITK_LOCATION);
+    }
+    return;
+  }
+}
 } // namespace detail
 
 /** Before any ITK reader opens path: throws itk::ExceptionObject when a PNG, JPEG or BMP file (told by its first
@@ -865,6 +1093,72 @@ inline void
 CheckDicomFileIsComplete(const std::string & path)
 {
   detail::CheckDicom(path);
+}
+
+/** Before any ITK reader opens path: the checks that must come first because ITK's readers abort the process or never
+ * return on such files (CheckEncodedImageFileIsComplete; a NIfTI sform ITK cannot take apart, detail::CheckNiftiSform;
+ * a MetaImage NDims out of range, detail::CheckMetaImageDimensions).
+ * With decomposeSform, a finite sform is also taken apart as ITK's reader does, on a thread of its own: vnl prints a
+ * warning to stderr for a singular one, so run it where stderr is captured (ImageDimensionOf, which the tools run on
+ * every input first). Throws itk::ExceptionObject. */
+inline void
+CheckImageFileBeforeReading(const std::string & path, bool decomposeSform = true)
+{
+  if (itksys::SystemTools::FileIsDirectory(path))
+  {
+    return;
+  }
+  CheckEncodedImageFileIsComplete(path);
+  detail::CheckNiftiSform(path, decomposeSform);
+  detail::CheckMetaImageDimensions(path);
+}
+
+/** After io has read path's header, before an image takes its geometry: throws itk::ExceptionObject when the spacing,
+ * origin or direction holds a value that is not a finite number, or the spacing a subnormal one. ITK 5.2 aborts the
+ * process when a geometry that is not finite is set on an image (the SVD of direction x spacing asserts finite
+ * entries), e.g. for a legacy VTK file with SPACING nan; its readers do not refuse it. */
+inline void
+CheckImageGeometryIsFinite(const std::string & path, const itk::ImageIOBase * io)
+{
+  const unsigned int d = io->GetNumberOfDimensions();
+  auto               refuse = [&](const char * what, const std::vector<double> & values) {
+    for (const double v : values)
+    {
+      if (!std::isfinite(v))
+      {
+        std::ostringstream text;
+        text << path << ": the header's " << what << " is not made of finite numbers (";
+        for (size_t i = 0; i < values.size(); ++i)
+        {
+          text << (i ? ", " : "") << values[i];
+        }
+        text << "): the header is corrupt";
+        throw itk::ExceptionObject(__FILE__, __LINE__, text.str(), ITK_LOCATION);
+      }
+    }
+  };
+  std::vector<double> spacing, origin, direction;
+  for (unsigned int i = 0; i < d; ++i)
+  {
+    spacing.push_back(io->GetSpacing(i));
+    origin.push_back(io->GetOrigin(i));
+    const std::vector<double> column = io->GetDirection(i);
+    direction.insert(direction.end(), column.begin(), column.end());
+  }
+  refuse("spacing", spacing);
+  refuse("origin", origin);
+  refuse("direction", direction);
+  // a subnormal spacing (1e-320) makes vnl print its SVD's warnings while ITK inverts the image's geometry
+  for (const double v : spacing)
+  {
+    if (v != 0.0 && !std::isnormal(v))
+    {
+      std::ostringstream text;
+      text << path << ": the header's spacing holds " << v
+           << ", below the smallest normal double precision number: the header is corrupt";
+      throw itk::ExceptionObject(__FILE__, __LINE__, text.str(), ITK_LOCATION);
+    }
+  }
 }
 
 /** After io has read path's header: throws itk::ExceptionObject when an uncompressed NIfTI, MetaImage or legacy VTK

@@ -401,9 +401,18 @@ ReadImageOrDicomSeries(const std::string & path)
   {
     complete = std::async(std::launch::async, [path] { return GzipStreamIsComplete(path); });
   }
-  CheckEncodedImageFileIsComplete(path);
+  CheckImageFileBeforeReading(path, false); // the sform's decompositions: ImageDimensionOf, with stderr captured
   auto reader = itk::ImageFileReader<TImage>::New();
   reader->SetFileName(path);
+  // the header's geometry is checked before the reader gives it to the image, which aborts on one that is not finite
+  auto io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::ImageIOFactory::IOFileModeEnum::ReadMode);
+  if (io)
+  {
+    io->SetFileName(path);
+    io->ReadImageInformation();
+    CheckImageGeometryIsFinite(path, io);
+    reader->SetImageIO(io);
+  }
   reader->UpdateOutputInformation(); // the header: is the pixel data all there?
   CheckRawPixelDataIsComplete(path, reader->GetImageIO());
   reader->Update(); // on an exception, the future's destructor waits for the check
@@ -468,7 +477,8 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
       throw UsageError(e.GetDescription());
     }
   };
-  checked([&] { CheckEncodedImageFileIsComplete(path); }); // before the header read: libpng aborts on some short files
+  // before the header read: libpng aborts on some short files, ITK's NIfTI reader on a sform that is not finite
+  checked([&] { CheckImageFileBeforeReading(path); });
   try
   {
     io->ReadImageInformation();
@@ -478,6 +488,7 @@ ImageDimensionOf(const std::string & path, unsigned int * components = nullptr, 
     throw UsageError("cannot read an image from " + path + ": " + e.GetDescription() + said());
   }
   libraries.Release(); // a header that reads: what was printed about it is not an error (ITK's warnings are off too)
+  checked([&] { CheckImageGeometryIsFinite(path, io); }); // ITK aborts when an image takes such a geometry
   checked([&] { CheckRawPixelDataIsComplete(path, io); });
   if (components)
   {

@@ -32,6 +32,8 @@
 #include "gtest/gtest.h"
 #include <array>
 #include <cstring>
+#include <limits>
+#include <zlib.h>
 #include <sstream>
 #include <vector>
 #include <sys/stat.h>
@@ -438,5 +440,182 @@ TEST(ImageFileCheck, DicomFileCutShortIsRefusedWhereverItIsCut)
     EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<CTType>(series)->GetPixel({ { 5, 4, 3 } }),
               whole->GetPixel({ { 5, 4, 3 } }));
   }
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+namespace
+{
+/** The description of the itk::ExceptionObject (or the text of the UsageError) that f throws; "" if none. */
+template <typename TFunction>
+std::string
+ErrorOf(TFunction && f)
+{
+  try
+  {
+    f();
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    return e.GetDescription();
+  }
+  catch (const dmrtools::UsageError & e)
+  {
+    return e.what();
+  }
+  return std::string();
+}
+
+void
+SetFloat(std::string & bytes, size_t at, float value)
+{
+  std::memcpy(&bytes[at], &value, sizeof value);
+}
+} // namespace
+
+TEST(ImageFileCheck, NiftiSformThatItkCannotTakeApartIsRefusedBeforeItkReadsIt)
+{
+  // Regression test (a fixed bug): ITK 5.2's NIfTI reader takes the sform apart with single-precision SVDs while it
+  // reads the header. A NaN or infinite srow entry aborted the tool (vnl's assert_finite, no message, exit 134), and
+  // an entry of 3e38 or a nearly singular sform spanning 43 orders of magnitude kept the SVD busy for good (found by
+  // mutating header fields). Offsets 280..327: srow_x, srow_y, srow_z (4 floats each); 254: sform_code.
+  const std::string dir = WorkDir();
+  const std::string path = dir + "/sform.nii";
+  WriteTestImage<float>(path);
+  std::string whole = ReadBytes(path);
+  ASSERT_GE(whole.size(), 352u);
+  const int16_t one = 1, zero = 0;
+  std::memcpy(&whole[254], &one, sizeof one); // sform_code 1 (scanner anatomy), as ITK writes it
+  WriteBytes(path, whole);
+  ASSERT_NO_THROW(dmrtools::CheckImageFileBeforeReading(path));
+  ASSERT_EQ(dmrtools::ImageDimensionOf(path), 2u);
+  const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
+  struct Case
+  {
+    size_t      at;
+    float       value;
+    std::string said;
+  };
+  for (const Case & c : { Case{ 280, nan, "srow_x[0] = nan, not a finite number" },
+                          Case{ 300, inf, "srow_y[1] = inf, not a finite number" },
+                          Case{ 324, nan, "srow_z[3] = nan, not a finite number" },
+                          Case{ 292, 3e38f, "is (1, 0, 0, 3e+38; " },
+                          Case{ 296, -1e10f, "is (1, 0, 0, 0; -1e+10, 1, 0, 0; -1.5e-33, 0, 1, 0)" } })
+  {
+    std::string bytes = whole;
+    for (unsigned int i = 0; i < 12; ++i)
+    {
+      SetFloat(bytes, 280 + 4 * i, i % 5 == 0 ? 1.0f : 0.0f); // the identity, as ITK writes this image
+    }
+    SetFloat(bytes, c.at, c.value);
+    if (c.value == -1e10f)
+    {
+      SetFloat(bytes, 312, -1.5e-33f); // with srow_z[0]: a mutated header that kept ITK's SVD busy for good
+    }
+    const std::string expected =
+      "the NIfTI header's sform (sform_code 1) " +
+      (c.said.compare(0, 3, "is ") == 0 ? c.said : "has " + c.said + ": the header is corrupt");
+    // as a .nii, a .nii.gz and a .hdr/.img pair (named by either file)
+    const std::string gz = dir + "/sform.nii.gz", hdr = dir + "/pair.hdr", img = dir + "/pair.img";
+    WriteBytes(path, bytes);
+    gzFile file = gzopen(gz.c_str(), "wb");
+    ASSERT_NE(file, nullptr);
+    ASSERT_EQ(gzwrite(file, bytes.data(), static_cast<unsigned int>(bytes.size())), static_cast<int>(bytes.size()));
+    ASSERT_EQ(gzclose(file), Z_OK);
+    std::string header = bytes.substr(0, 348);
+    header[345] = 'i'; // "ni1": the header of a pair
+    WriteBytes(hdr, header);
+    WriteBytes(img, bytes.substr(352));
+    const bool hangs = c.said.compare(0, 3, "is ") == 0;
+    if (hangs)
+    {
+      // each refusal leaves a thread in the SVD for 2 s and for good: one file
+      SCOPED_TRACE(c.said);
+      EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(gz); }).find(expected), std::string::npos);
+    }
+    for (const std::string & name : hangs ? std::vector<std::string>{} : std::vector<std::string>{ path, gz, hdr, img })
+    {
+      SCOPED_TRACE(name + ": " + c.said);
+      EXPECT_NE(ErrorOf([&] { dmrtools::CheckImageFileBeforeReading(name); }).find(expected), std::string::npos);
+      EXPECT_THROW(dmrtools::ImageDimensionOf(name), dmrtools::UsageError);
+      EXPECT_NE(ErrorOf([&] { dmrtools::ReadImageOrDicomSeries<Image2DType>(name); }).find(expected),
+                std::string::npos);
+    }
+    // with sform_code 0 the sform is not used: the file reads
+    std::memcpy(&bytes[254], &zero, sizeof zero);
+    WriteBytes(path, bytes);
+    EXPECT_NO_THROW(dmrtools::CheckImageFileBeforeReading(path)) << c.said;
+    EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<Image2DType>(path)->GetPixel({ { 3, 2 } }), 3.0f * 7 + 2 * 13 + 20);
+  }
+  // the NIfTI library reads a header whose sizeof_hdr is wrong (it tells the byte order from dim[0]): so does the check
+  std::string wrongSize = whole;
+  SetFloat(wrongSize, 296, -std::numeric_limits<float>::infinity());
+  std::memset(&wrongSize[0], 0xff, 4);
+  WriteBytes(path, wrongSize);
+  EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(path); }).find("has srow_y[0] = -inf, not a finite number"),
+            std::string::npos);
+  // a singular sform that ITK's SVDs take apart (all zeros, as some writers leave it) is not refused: ITK reads the
+  // file
+  std::string zeros = whole;
+  for (unsigned int i = 0; i < 12; ++i)
+  {
+    SetFloat(zeros, 280 + 4 * i, 0.0f);
+  }
+  WriteBytes(path, zeros);
+  EXPECT_EQ(dmrtools::ImageDimensionOf(path), 2u);
+  EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<Image2DType>(path)->GetPixel({ { 3, 2 } }), 3.0f * 7 + 2 * 13 + 20);
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+TEST(ImageFileCheck, GeometryThatIsNotFiniteIsRefusedBeforeAnImageTakesIt)
+{
+  // Regression test (a fixed bug): a legacy VTK file with SPACING nan aborted the tool (ITK 5.2 asserts finite
+  // entries when an image takes such a spacing; its reader passes it on).
+  const std::string dir = WorkDir();
+  const std::string path = dir + "/spacing.vtk";
+  WriteTestImage<float>(path);
+  const std::string whole = ReadBytes(path);
+  ASSERT_NO_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path));
+  for (const std::string & key : { std::string("SPACING"), std::string("ORIGIN") })
+  {
+    SCOPED_TRACE(key);
+    const size_t at = whole.find("\n" + key + " ");
+    ASSERT_NE(at, std::string::npos);
+    const size_t end = whole.find('\n', at + 1);
+    WriteBytes(path, whole.substr(0, at) + "\n" + key + " nan 1 1" + whole.substr(end));
+    const std::string expected = std::string("the header's ") + (key == "SPACING" ? "spacing" : "origin") +
+                                 " is not made of finite numbers (nan, 1): the header is corrupt";
+    EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(path); }).find(expected), std::string::npos);
+    EXPECT_NE(ErrorOf([&] { dmrtools::ReadImageOrDicomSeries<Image2DType>(path); }).find(expected), std::string::npos);
+  }
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+TEST(ImageFileCheck, MetaImageHeaderWhoseDimensionsMetaIOWouldLoopOverIsRefused)
+{
+  // Regression test (a fixed bug): MetaIO reads NDims x NDims TransformMatrix values and NDims of the other arrays
+  // from whatever NDims says; NDims = -1e308 kept ITK 5.2's reader busy for good (found by mutating header lines).
+  const std::string dir = WorkDir();
+  const std::string path = dir + "/dims.mha";
+  WriteTestImage<float>(path);
+  const std::string whole = ReadBytes(path);
+  const size_t      at = whole.find("NDims = 2\n");
+  ASSERT_NE(at, std::string::npos);
+  EXPECT_EQ(dmrtools::ImageDimensionOf(path), 2u);
+  for (const std::string & value : { "-1e308", "-2147483649", "0", "11", "nan", "two" })
+  {
+    SCOPED_TRACE(value);
+    WriteBytes(path, whole.substr(0, at) + "NDims = " + value + whole.substr(at + 9));
+    const std::string expected =
+      "the MetaImage header's NDims (" + value + ") is not a number of dimensions from 1 to 10: the header is corrupt";
+    EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(path); }).find(expected), std::string::npos);
+    EXPECT_NE(ErrorOf([&] { dmrtools::ReadImageOrDicomSeries<Image2DType>(path); }).find(expected), std::string::npos);
+  }
+  // a subnormal spacing is refused before ITK inverts the geometry (vnl printed its SVD's warnings there)
+  const size_t spacing = whole.find("ElementSpacing = ");
+  ASSERT_NE(spacing, std::string::npos);
+  const size_t end = whole.find('\n', spacing);
+  WriteBytes(path, whole.substr(0, spacing) + "ElementSpacing = 1e-320 1" + whole.substr(end));
+  EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(path); }).find("below the smallest normal double"),
+            std::string::npos);
   itksys::SystemTools::RemoveADirectory(dir);
 }
