@@ -334,6 +334,53 @@ TEST(FEMRegistrationMethod, SafeguardedStepNeverRaisesTheMSSD)
   EXPECT_GT(range.first, 0.0);
 }
 
+TEST(FEMRegistrationMethod, StepsThatDoNotLowerTheMSSDEnoughAreNotTaken)
+{
+  // Regression test (a fixed bug): a moving image with next to no contrast (a blob at 1e-17) against a fixed blob at
+  // 1. The automatic beta makes the first step u = K^-1 f D / (f K^-1 f), which grows like D / |f|: 1.4e16 pixels
+  // here. Such a step leaves the MSSD as it was (the moving image adds nothing at double precision), and the
+  // safeguard's former test "not larger" took it: the field went to 1e16 pixels, det J to -1e18, with no error. The
+  // sufficient-decrease test (1e-4 of the first-order decrease) rejects it and every halving of it, so W stays.
+  for (const MeshMode mode : { MeshMode::Regular, MeshMode::Dynamic })
+  {
+    SCOPED_TRACE(mode == MeshMode::Regular ? "regular" : "dynamic");
+    auto method = MethodType::New();
+    method->SetFixedImage(Blob(64, 56, 30, 28, 16, 12));
+    auto moving = Blob(64, 56, 34, 27, 12, 12);
+    for (float * v = moving->GetBufferPointer(); v != moving->GetBufferPointer() + 64 * 56; ++v)
+    {
+      *v *= 1e-17f;
+    }
+    method->SetMovingImage(moving);
+    method->SetNumberOfNodes(30);
+    method->SetNumberOfIterations(3);
+    method->SetMeshMode(mode);
+    method->Update();
+    for (const auto & record : method->GetHistory())
+    {
+      EXPECT_EQ(record.stepScale, 0.0) << "iteration " << record.iteration;
+    }
+    const auto * field = method->GetDisplacementField();
+    double       largest = 0.0;
+    for (auto v = field->GetBufferPointer(); v != field->GetBufferPointer() + 64 * 56; ++v)
+    {
+      largest = std::max(largest, static_cast<double>(v->GetNorm()));
+    }
+    EXPECT_EQ(largest, 0.0);
+    std::pair<double, double> range;
+    itk::dmr::JacobianDeterminantImage(field, range, nullptr);
+    EXPECT_EQ(range.first, 1.0);
+    EXPECT_EQ(range.second, 1.0);
+  }
+  // the same pair with contrast registers as before: the safeguard takes its full steps
+  auto method = SmallRegistration(MeshMode::Regular, 5);
+  method->Update();
+  for (const auto & record : method->GetHistory())
+  {
+    EXPECT_EQ(record.stepScale, 1.0) << "iteration " << record.iteration;
+  }
+}
+
 TEST(FEMRegistrationMethod, RegularAndStaticMeshesLowerSSD)
 {
   auto regular = SmallRegistration(MeshMode::Regular, 60);

@@ -47,11 +47,15 @@ namespace itk
  *     beta R / D = EnergyRatio (paper 5.1: 0.02). With u = K^-1 f / beta, R = f^T K^-1 f / (2 beta^2), hence
  *     beta = f^T K^-1 f / (2 EnergyRatio D);
  *  5. the nodal update is interpolated to the pixels and applied by the diffeomorphic rule W <- W o exp(u) (Eq. 8),
- *     exp by scaling and squaring. The step is safeguarded: when W o exp(u) has a larger MSSD than W, u is halved
- *     (at most MaximumStepHalvings times; if no step lowers the MSSD, W is kept), so the MSSD never increases. The
- *     paper's fixed beta gives a fixed step length per unit force, which overshoots and oscillates once the force of
- *     a strongly deformed region grows (circle to leaf). The MSSD of an accepted step is the next iteration's force
- *     evaluation, so only rejected steps cost extra. MaximumStepHalvings = 0 is the paper's plain iteration.
+ *     exp by scaling and squaring. The step is safeguarded: when W o exp(s u) does not lower the MSSD by at least
+ *     1e-4 of the first-order prediction s f.u (the nodal forces times the nodal update; Armijo's sufficient decrease),
+ *     s is halved (at most MaximumStepHalvings times; if no step lowers the MSSD so, W is kept), so the MSSD never
+ *     increases. The paper's fixed beta gives a fixed step length per unit force, which overshoots and oscillates
+ *     once the force of a strongly deformed region grows (circle to leaf); and as u = K^-1 f D / (f K^-1 f) grows
+ *     like D / |f|, a moving image with next to no contrast where the images differ gets steps of 1e16 pixels that
+ *     leave the MSSD as it was (not lower), which the plain "not larger" test took. The MSSD of an accepted step is
+ *     the next iteration's force evaluation, so only rejected steps cost extra. MaximumStepHalvings = 0 is the
+ *     paper's plain iteration.
  * The force uses the gradient of the warped moving image by default (ForceGradient, see DensityFieldFilter).
  * Inputs: FixedImage, MovingImage (any grid: sampled through physical space; neither region needs to start at index
  * 0), optional FixedMask (region of interest on the fixed grid: the fixed image's region, origin, spacing and
@@ -375,13 +379,24 @@ private:
     return 1.0 / (scale * scale);
   }
   /** The step safeguard, one rule for both back-ends: tries W o exp(s u) for s = 1, 1/2, ... while the candidate's
-   * MSSD is above record.mssd (at most MaximumStepHalvings halvings; none checked when it is 0). apply(s) makes the
-   * candidate for s and returns its largest update (pixels); candidateMSSD() evaluates the force at the candidate and
-   * returns its MSSD (x pixel volume); reject() drops the candidate. Sets record.maxUpdate and record.stepScale (0:
-   * no step taken, W unchanged). Returns true when the force at the new W has been evaluated (the next iteration's). */
+   * MSSD is above record.mssd - SufficientDecrease s predictedDecrease (at most MaximumStepHalvings halvings; none
+   * checked when it is 0). predictedDecrease is the first-order decrease of the full step, f.u (nodal forces times
+   * the nodal update, x pixel volume, as the MSSD). apply(s) makes the candidate for s and returns its largest update
+   * (pixels); candidateMSSD() evaluates the force at the candidate and returns its MSSD (x pixel volume); reject()
+   * drops the candidate. Sets record.maxUpdate and record.stepScale (0: no step taken, W unchanged). Returns true when
+   * the force at the new W has been evaluated (the next iteration's). */
   template <typename TApply, typename TCandidateMSSD, typename TReject>
   bool
-  SafeguardedStep(IterationRecord & record, TApply && apply, TCandidateMSSD && candidateMSSD, TReject && reject) const;
+  SafeguardedStep(IterationRecord & record,
+                  double            predictedDecrease,
+                  TApply &&         apply,
+                  TCandidateMSSD && candidateMSSD,
+                  TReject &&        reject) const;
+  /** The share of the first-order decrease an accepted step must reach (Armijo's constant). */
+  static constexpr double SufficientDecrease = 1e-4;
+  /** f.u / beta of an iteration's solve: the first-order decrease of the MSSD for the full step (at least 0). */
+  double
+  PredictedDecrease(const std::vector<double> & nodalForce, const std::vector<double> & nodalU) const;
   /** Assembles the stiffness of a new mesh (timed as FEM solve, part of registration). */
   void
   SetSolverMesh(const SimplexMeshType & mesh);

@@ -459,6 +459,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     // W <- W o exp(s u), u = K^-1 f / beta at every pixel; the candidate is made in `update`
     forceIsCurrent = this->SafeguardedStep(
       record,
+      this->PredictedDecrease(nodalForce, nodalU),
       [&](double scale) {
         const auto t1 = Clock::now();
         bary.Interpolate(nodalU, scale / m_Beta, update.data(), threader);
@@ -642,9 +643,23 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
 }
 
 template <typename TF, typename TM, typename TD>
+double
+FEMRegistrationMethod<TF, TM, TD>::PredictedDecrease(const std::vector<double> & nodalForce,
+                                                     const std::vector<double> & nodalU) const
+{
+  double fu = 0.0;
+  for (size_t i = 0; i < nodalU.size(); ++i)
+  {
+    fu += nodalForce[i] * nodalU[i];
+  }
+  return fu > 0.0 ? fu / m_Beta : 0.0;
+}
+
+template <typename TF, typename TM, typename TD>
 template <typename TApply, typename TCandidateMSSD, typename TReject>
 bool
 FEMRegistrationMethod<TF, TM, TD>::SafeguardedStep(IterationRecord & record,
+                                                   double            predictedDecrease,
                                                    TApply &&         apply,
                                                    TCandidateMSSD && candidateMSSD,
                                                    TReject &&        reject) const
@@ -654,7 +669,7 @@ FEMRegistrationMethod<TF, TM, TD>::SafeguardedStep(IterationRecord & record,
   {
     const double maxUpdate = apply(scale);
     // the force at an accepted candidate is the next iteration's force: only rejected steps cost an evaluation
-    if (m_MaximumStepHalvings == 0 || candidateMSSD() <= record.mssd)
+    if (m_MaximumStepHalvings == 0 || candidateMSSD() <= record.mssd - SufficientDecrease * scale * predictedDecrease)
     {
       record.maxUpdate = maxUpdate;
       record.stepScale = scale;
@@ -1194,6 +1209,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     // W <- W o exp(s u) on the device; a rejected candidate is reverted
     forceIsCurrent = this->SafeguardedStep(
       record,
+      this->PredictedDecrease(nodalForce, nodalU),
       [&](double scale) {
         const auto   t1 = Clock::now();
         unsigned int squarings = 0;
