@@ -341,15 +341,19 @@ TEST(FEMRegistrationMethod, StepsThatDoNotLowerTheMSSDEnoughAreNotTaken)
   // here. Such a step leaves the MSSD as it was (the moving image adds nothing at double precision), and the
   // safeguard's former test "not larger" took it: the field went to 1e16 pixels, det J to -1e18, with no error. The
   // sufficient-decrease test (1e-4 of the first-order decrease) rejects it and every halving of it, so W stays.
-  for (const MeshMode mode : { MeshMode::Regular, MeshMode::Dynamic })
+  // At 1e-44 the step is not even finite in single precision: its field is not evaluated (that
+  // evaluation threw "alpha is nan").
+  for (const auto & [mode, contrast] : { std::make_pair(MeshMode::Regular, 1e-17f),
+                                         std::make_pair(MeshMode::Dynamic, 1e-17f),
+                                         std::make_pair(MeshMode::Regular, 1e-44f) })
   {
-    SCOPED_TRACE(mode == MeshMode::Regular ? "regular" : "dynamic");
+    SCOPED_TRACE(::testing::Message() << (mode == MeshMode::Regular ? "regular, " : "dynamic, ") << contrast);
     auto method = MethodType::New();
     method->SetFixedImage(Blob(64, 56, 30, 28, 16, 12));
     auto moving = Blob(64, 56, 34, 27, 12, 12);
     for (float * v = moving->GetBufferPointer(); v != moving->GetBufferPointer() + 64 * 56; ++v)
     {
-      *v *= 1e-17f;
+      *v *= contrast;
     }
     method->SetMovingImage(moving);
     method->SetNumberOfNodes(30);

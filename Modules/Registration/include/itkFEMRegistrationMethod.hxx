@@ -668,8 +668,11 @@ FEMRegistrationMethod<TF, TM, TD>::SafeguardedStep(IterationRecord & record,
   for (unsigned int halving = 0;; ++halving, scale *= 0.5)
   {
     const double maxUpdate = apply(scale);
-    // the force at an accepted candidate is the next iteration's force: only rejected steps cost an evaluation
-    if (m_MaximumStepHalvings == 0 || candidateMSSD() <= record.mssd - SufficientDecrease * scale * predictedDecrease)
+    // the force at an accepted candidate is the next iteration's force: only rejected steps cost an evaluation. A
+    // step beyond single precision (an image with next to no contrast: 1e43 pixels) is not evaluated, its field is
+    // not finite.
+    if (m_MaximumStepHalvings == 0 ||
+        (std::isfinite(maxUpdate) && candidateMSSD() <= record.mssd - SufficientDecrease * scale * predictedDecrease))
     {
       record.maxUpdate = maxUpdate;
       record.stepScale = scale;
