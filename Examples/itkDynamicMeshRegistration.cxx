@@ -1174,8 +1174,9 @@ Run(const Options & opt)
     {
       std::cout << "note: the registration hardly moved anything: its steps add up to at most " << moved
                 << " pixels, and " << rejected << " of " << history.size()
-                << " steps were rejected because they would have raised the MSSD; check --energy-ratio (default "
-                   "0.02), --lambda and --mu\n";
+                << " steps were rejected because they would not have lowered the MSSD (by 1e-4 of its first-order "
+                   "decrease); check --energy-ratio (default 0.02), --lambda and --mu, and that the moving image has "
+                   "contrast where the images differ\n";
     }
   }
 
