@@ -308,30 +308,47 @@ CheckNifti(const std::string & path, uint64_t itkBytes)
   RequireBytes(data, static_cast<uint64_t>(offset), bytes > 0 ? bytes : itkBytes, path);
 }
 
-/** MetaImage: from its "Key = value" header lines, the pixel data of an uncompressed file either follows the
- * ElementDataFile = LOCAL line or fills one external file (after HeaderSize bytes). */
-inline void
-CheckMetaImage(const std::string & path, uint64_t bytes)
+/** The "Key = value" lines of a MetaImage header, key and value trimmed, to the ElementDataFile line (included): each
+ * is given to field(key, value, end), end the file offset after its line, until field returns false. Lines without
+ * "=" are skipped; a line of 4096 characters or more ends the header. */
+template <typename TField>
+void
+ForEachMetaImageField(const std::string & path, TField && field)
 {
   std::ifstream in(path, std::ios::binary);
-  std::string   line, dataFile;
-  bool          compressed = false;
-  long long     headerSize = 0;
-  uint64_t      after = 0;
+  std::string   line;
+  uint64_t      end = 0;
+  auto          trim = [](std::string s) {
+    s.erase(0, s.find_first_not_of(" \t\r"));
+    s.erase(s.find_last_not_of(" \t\r") + 1);
+    return s;
+  };
   while (std::getline(in, line) && line.size() < 4096)
   {
-    after += line.size() + 1;
+    end += line.size() + 1;
     const size_t eq = line.find('=');
     if (eq == std::string::npos)
     {
       continue;
     }
-    auto trim = [](std::string s) {
-      s.erase(0, s.find_first_not_of(" \t\r"));
-      s.erase(s.find_last_not_of(" \t\r") + 1);
-      return s;
-    };
-    const std::string key = trim(line.substr(0, eq)), value = trim(line.substr(eq + 1));
+    const std::string key = trim(line.substr(0, eq));
+    if (!field(key, trim(line.substr(eq + 1)), end) || key == "ElementDataFile")
+    {
+      return;
+    }
+  }
+}
+
+/** MetaImage: from its "Key = value" header lines, the pixel data of an uncompressed file either follows the
+ * ElementDataFile = LOCAL line or fills one external file (after HeaderSize bytes). */
+inline void
+CheckMetaImage(const std::string & path, uint64_t bytes)
+{
+  std::string dataFile;
+  bool        compressed = false;
+  long long   headerSize = 0;
+  uint64_t    after = 0;
+  ForEachMetaImageField(path, [&](const std::string & key, const std::string & value, uint64_t end) {
     if (key == "CompressedData")
     {
       compressed = value == "True" || value == "true" || value == "1";
@@ -343,9 +360,10 @@ CheckMetaImage(const std::string & path, uint64_t bytes)
     else if (key == "ElementDataFile")
     {
       dataFile = value;
-      break;
+      after = end;
     }
-  }
+    return true;
+  });
   if (dataFile.empty() || compressed)
   {
     return; // no data line (left to the reader) or zlib-compressed data
@@ -873,41 +891,23 @@ CheckMetaImageDimensions(const std::string & path)
   {
     return;
   }
-  std::ifstream in(path, std::ios::binary);
-  std::string   line;
-  for (unsigned int count = 0; count < 1000 && std::getline(in, line) && line.size() < 4096; ++count)
-  {
-    const size_t eq = line.find('=');
-    if (eq == std::string::npos)
+  unsigned int fields = 0;
+  ForEachMetaImageField(path, [&](const std::string & key, const std::string & value, uint64_t) {
+    if (key == "NDims")
     {
-      continue;
+      char *       end = nullptr;
+      const double n = std::strtod(value.c_str(), &end);
+      if (end == value.c_str() || !(n >= 1.0 && n < 11.0))
+      {
+        throw itk::ExceptionObject(__FILE__,
+                                   __LINE__,
+                                   path + ": the MetaImage header's NDims (" + value +
+                                     ") is not a number of dimensions from 1 to 10: the header is corrupt",
+                                   ITK_LOCATION);
+      }
     }
-    std::string key = line.substr(0, eq);
-    key.erase(key.find_last_not_of(" \t\r") + 1);
-    key.erase(0, key.find_first_not_of(" \t"));
-    if (key == "ElementDataFile")
-    {
-      return;
-    }
-    if (key != "NDims")
-    {
-      continue;
-    }
-    const std::string value = line.substr(eq + 1);
-    char *            end = nullptr;
-    const double      n = std::strtod(value.c_str(), &end);
-    if (end == value.c_str() || !(n >= 1.0 && n < 11.0))
-    {
-      std::string shown = value;
-      shown.erase(shown.find_last_not_of(" \t\r") + 1);
-      shown.erase(0, shown.find_first_not_of(" \t"));
-      throw itk::ExceptionObject(__FILE__,
-                                 __LINE__,
-                                 path + ": the MetaImage header's NDims (" + shown +
-                                   ") is not a number of dimensions from 1 to 10: the header is corrupt",
-                                 ITK_LOCATION);
-    }
-  }
+    return ++fields < 1000;
+  });
 }
 
 /** Whether ITK 5.2's single-precision SVDs of a finite sform return: its NIfTI reader checks that the sform is an

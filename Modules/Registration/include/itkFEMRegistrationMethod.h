@@ -394,6 +394,9 @@ private:
                   TReject &&        reject) const;
   /** The share of the first-order decrease an accepted step must reach (Armijo's constant). */
   static constexpr double SufficientDecrease = 1e-4;
+  /** f.u of an iteration's solve (f^T K^-1 f): the nodal forces times the solution of K u = f. */
+  static double
+  NodalWork(const std::vector<double> & nodalForce, const std::vector<double> & nodalU);
   /** f.u / beta of an iteration's solve: the first-order decrease of the MSSD for the full step (at least 0). */
   double
   PredictedDecrease(const std::vector<double> & nodalForce, const std::vector<double> & nodalU) const;

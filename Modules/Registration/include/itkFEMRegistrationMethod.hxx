@@ -626,11 +626,7 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
   m_Timing.femSolve += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   if (m_Beta == 0.0)
   {
-    double fKf = 0.0;
-    for (size_t i = 0; i < nodalU.size(); ++i)
-    {
-      fKf += nodalForce[i] * nodalU[i];
-    }
+    const double fKf = NodalWork(nodalForce, nodalU);
     if (!(fKf > 0.0) || !(mssd > 0.0))
     {
       m_StopConditionDescription = "the images already match: there is no force to register with (the identity is "
@@ -644,14 +640,22 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
 
 template <typename TF, typename TM, typename TD>
 double
-FEMRegistrationMethod<TF, TM, TD>::PredictedDecrease(const std::vector<double> & nodalForce,
-                                                     const std::vector<double> & nodalU) const
+FEMRegistrationMethod<TF, TM, TD>::NodalWork(const std::vector<double> & nodalForce, const std::vector<double> & nodalU)
 {
   double fu = 0.0;
   for (size_t i = 0; i < nodalU.size(); ++i)
   {
     fu += nodalForce[i] * nodalU[i];
   }
+  return fu;
+}
+
+template <typename TF, typename TM, typename TD>
+double
+FEMRegistrationMethod<TF, TM, TD>::PredictedDecrease(const std::vector<double> & nodalForce,
+                                                     const std::vector<double> & nodalU) const
+{
+  const double fu = NodalWork(nodalForce, nodalU);
   return fu > 0.0 ? fu / m_Beta : 0.0;
 }
 
