@@ -18,7 +18,10 @@
 #ifndef dmrBarycentricMap_h
 #define dmrBarycentricMap_h
 
+#include "dmrFixedPointGather.h"
 #include "dmrSimplexMesh.h"
+#include <algorithm>
+#include <cmath>
 #include <atomic>
 #include <memory>
 #include <limits>
@@ -253,39 +256,63 @@ public:
     return m_Weights;
   }
 
-  /** Consistent nodal load f_a = scale x sum_x phi_a(x) f(x) for a D-component pixel field (grid frame). */
+  /** Consistent nodal load f_a = scale x sum_x phi_a(x) f(x) for a D-component pixel field (grid frame), summed in
+   * fixed point (dmrFixedPointGather.h) as the GPU's gather does: the result does not depend on how the pixels are
+   * split among threads, and equals the GPU's bit for bit for the same weights and field. A field with a NaN or
+   * infinite value gives NaN everywhere. */
   void
   Gather(const float * field, double scale, std::vector<double> & nodal, MultiThreaderBase * threader) const
   {
-    const size_t                     nNodes = m_Mesh->NumberOfNodes();
-    const size_t                     n = m_Grid.numberOfPixels;
-    const size_t                     nChunks = std::max<size_t>(1, std::min<size_t>(32, n / 8192));
-    const size_t                     chunk = (n + nChunks - 1) / nChunks;
-    std::vector<std::vector<double>> partial(nChunks);
+    const size_t nNodes = m_Mesh->NumberOfNodes();
+    const size_t n = m_Grid.numberOfPixels;
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(32, n / 8192));
+    const size_t chunk = (n + nChunks - 1) / nChunks;
+    // the largest |f_k| (infinite when a value is not finite) gives the quantum
+    std::vector<float> chunkMax(nChunks, 0.0f);
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      float        m = 0.0f;
+      const size_t end = std::min(n, (c + 1) * chunk) * D;
+      for (size_t i = c * chunk * D; i < end; ++i)
+      {
+        m = std::isfinite(field[i]) ? std::max(m, std::abs(field[i])) : std::numeric_limits<float>::infinity();
+      }
+      chunkMax[c] = m;
+    });
+    const double quantum =
+      GatherQuantum(*std::max_element(chunkMax.begin(), chunkMax.end()), static_cast<long long>(n));
+    nodal.assign(nNodes * D, 0.0);
+    if (!(quantum > 0.0)) // no force (0), or one that is not finite (NaN)
+    {
+      std::fill(nodal.begin(), nodal.end(), quantum == 0.0 ? 0.0 : std::numeric_limits<double>::quiet_NaN());
+      return;
+    }
+    const double                        inverse = 1.0 / quantum;
+    std::vector<std::vector<long long>> partial(nChunks);
     ParallelForChunkIds(threader, nChunks, [&](size_t c) {
       auto & acc = partial[c];
-      acc.assign(nNodes * D, 0.0);
+      acc.assign(nNodes * D, 0);
       const size_t end = std::min(n, (c + 1) * chunk);
       for (size_t p = c * chunk; p < end; ++p)
       {
         const auto & el = m_Mesh->elements[m_Element[p]];
         for (unsigned int v = 0; v < NumberOfVertices; ++v)
         {
-          const double w = m_Weights[p * NumberOfVertices + v];
+          const float w = m_Weights[p * NumberOfVertices + v];
           for (unsigned int k = 0; k < D; ++k)
           {
-            acc[el[v] * D + k] += w * field[p * D + k];
+            acc[el[v] * D + k] += GatherTerm(w, field[p * D + k], inverse);
           }
         }
       }
     });
-    nodal.assign(nNodes * D, 0.0);
-    for (const auto & acc : partial) // chunk order: deterministic
+    for (size_t i = 0; i < nodal.size(); ++i)
     {
-      for (size_t i = 0; i < nodal.size(); ++i)
+      long long sum = 0;
+      for (const auto & acc : partial)
       {
-        nodal[i] += scale * acc[i];
+        sum += acc[i];
       }
+      nodal[i] = GatherValue(sum, quantum, scale);
     }
   }
 

@@ -22,6 +22,7 @@
  * per-block partials summed in a fixed order, maxima, or (the force gather) 64-bit fixed-point sums. */
 #include "dmrRegistrationBackend.h"
 #include "dmrCudaUtils.cuh"
+#include "dmrFixedPointGather.h"
 
 #include <cooperative_groups.h>
 
@@ -660,29 +661,12 @@ MaxAbsKernel(const float * f, long long n, unsigned long long * maximum)
   }
 }
 
-/** The power of two q such that every partial sum of the gather, at most n terms of magnitude at most maxAbs, stays
- * below 2^62 q: the gather's fixed-point quantum (0 when there is no force, NaN when the force is not finite). */
-__device__ inline double
-GatherQuantum(double maxAbs, long long n)
-{
-  if (!isfinite(maxAbs))
-  {
-    return NAN;
-  }
-  if (!(maxAbs > 0.0))
-  {
-    return 0.0;
-  }
-  int exponent = 0;
-  frexp(maxAbs * static_cast<double>(n), &exponent); // maxAbs n < 2^exponent
-  return ldexp(1.0, exponent - 62);
-}
-
-/** The consistent load vector sum_x phi_a(x) f(x) in fixed point: every term phi_v(x) f_k(x) is rounded to a multiple
- * of the quantum and added as a 64-bit integer, so the sums do not depend on the order of the additions and the
- * result is deterministic although the pixels run in parallel. One warp takes 32 consecutive pixels; the lanes of a
- * run with the same owner element sum their terms (segmented scan), and the run's last lane adds them to the element's
- * nodes: a few atomics per warp instead of one per pixel. sums (nNodes x D) must start at 0. */
+/** The consistent load vector sum_x phi_a(x) f(x) in fixed point (dmrFixedPointGather.h, the CPU's rule): every term
+ * phi_v(x) f_k(x) is rounded to a multiple of the quantum and added as a 64-bit integer, so the sums do not depend on
+ * the order of the additions and the result is deterministic although the pixels run in parallel. One warp takes 32
+ * consecutive pixels; the lanes of a run with the same owner element sum their terms (segmented scan), and the run's
+ * last lane adds them to the element's nodes: a few atomics per warp instead of one per pixel. sums (nNodes x D) must
+ * start at 0. */
 template <int D>
 __global__ void
 GatherPixelsKernel(DeviceGrid                 g,
@@ -717,8 +701,7 @@ GatherPixelsKernel(DeviceGrid                 g,
       {
         for (int k = 0; k < D; ++k)
         {
-          // the CPU's term (float weight times float force, in double), rounded to the quantum
-          term[v * D + k] = llrint(static_cast<double>(wt[v]) * static_cast<double>(force[p * D + k]) * inverse);
+          term[v * D + k] = GatherTerm(wt[v], force[p * D + k], inverse);
         }
       }
     }
@@ -774,7 +757,7 @@ GatherFinishKernel(long long                  n,
   for (long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; i < n;
        i += static_cast<long long>(gridDim.x) * blockDim.x)
   {
-    nodal[i] = isfinite(maxAbs) ? scale * (quantum * static_cast<double>(static_cast<long long>(sums[i]))) : NAN;
+    nodal[i] = isfinite(maxAbs) ? GatherValue(static_cast<long long>(sums[i]), quantum, scale) : NAN;
   }
 }
 
