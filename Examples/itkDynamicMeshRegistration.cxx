@@ -102,6 +102,7 @@ struct Options
   std::string forceGradient{ "warped" };
   long        stepHalvings{ 5 };
   long        deviceSolveMinDofs{ 300 };
+  long        directSolveMaxDofs{ 300 };
   double      femTolerance{ 1e-6 };
   std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
   bool        landmarksInMM{ false };
@@ -132,6 +133,8 @@ const char * const Usage =
   "  --cvt-epsilon E        stop the CVT sweeps when a sweep lowers the energy by at most E x energy (default 0)\n"
   "  --fem-tolerance T      stop the conjugate-gradient solve of the elastic system at |r| < T |f| (default 1e-6;\n"
   "                         1e-16 to 1e-2)\n"
+  "  --direct-solve-max-dofs N  solve elastic systems of at most N free unknowns on the CPU exactly (factorised)\n"
+  "                         instead of by conjugate gradients (default 300; 0: always conjugate gradients)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
@@ -340,6 +343,8 @@ ParseArguments(int argc, char * argv[])
       opt.femTolerance = ParseReal(a, v);
     else if (a == "--device-solve-min-dofs")
       opt.deviceSolveMinDofs = ParseInteger(a, v);
+    else if (a == "--direct-solve-max-dofs")
+      opt.directSolveMaxDofs = ParseInteger(a, v);
     else if (a == "--force-gradient")
       opt.forceGradient = v;
     else if (a == "--fixed-mask")
@@ -406,6 +411,8 @@ ParseArguments(int argc, char * argv[])
   }
   if (opt.deviceSolveMinDofs < 0)
     throw UsageError("--device-solve-min-dofs must be 0 or more");
+  if (opt.directSolveMaxDofs < 0)
+    throw UsageError("--direct-solve-max-dofs must be 0 or more");
   if (opt.stepHalvings < 0 || opt.stepHalvings > 30)
     throw UsageError("--step-halvings must be between 0 and 30");
   if (opt.forceGradient != "warped" && opt.forceGradient != "mapped")
@@ -1006,6 +1013,7 @@ Run(const Options & opt)
   method->SetAlphaFactor(opt.alphaFactor);
   method->SetMaximumStepHalvings(static_cast<unsigned int>(opt.stepHalvings));
   method->SetDeviceSolverMinimumDegreesOfFreedom(static_cast<itk::SizeValueType>(opt.deviceSolveMinDofs));
+  method->SetDirectSolverMaximumDegreesOfFreedom(static_cast<itk::SizeValueType>(opt.directSolveMaxDofs));
   method->SetForceGradient(opt.forceGradient == "mapped"
                              ? itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving
                              : itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving);
@@ -1143,10 +1151,11 @@ Run(const Options & opt)
   }
   dmrtools::ThrowIfInterrupted();
   const auto & history = method->GetHistory();
-  size_t       deviceSolves = 0, cgProducts = 0;
+  size_t       deviceSolves = 0, directSolves = 0, cgProducts = 0;
   for (const auto & r : history)
   {
     deviceSolves += r.deviceSolve ? 1 : 0;
+    directSolves += r.directSolve ? 1 : 0;
     cgProducts += r.solverIterations;
   }
   if (!history.empty() && (meshFiles.empty() || meshFiles.back().first != history.back().iteration))
@@ -1336,7 +1345,9 @@ Run(const Options & opt)
        << "  \"step_halvings\": " << opt.stepHalvings << ",\n"
        << "  \"device_solve_min_dofs\": " << opt.deviceSolveMinDofs << ",\n"
        << "  \"fem_tolerance\": " << opt.femTolerance << ",\n"
+       << "  \"direct_solve_max_dofs\": " << opt.directSolveMaxDofs << ",\n"
        << "  \"device_solves\": " << deviceSolves << ",\n"
+       << "  \"direct_solves\": " << directSolves << ",\n"
        << "  \"cg_products\": " << cgProducts << ",\n"
        << "  \"beta\": " << method->GetBeta() << ",\n"
        << "  \"cvt_max_sweeps\": " << opt.cvtMaxSweeps << ",\n"

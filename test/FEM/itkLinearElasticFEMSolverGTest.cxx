@@ -205,29 +205,50 @@ CheckPatchTests(const itk::dmr::SimplexMesh<D> & mesh)
   {
     v = uniform(engine);
   }
-  solver->Solve(f, u);
-  ASSERT_EQ(u.size(), nDof);
-  const Eigen::VectorXd Ku = Apply(K, u);
-  double                fNorm = 0.0;
+  double fNorm = 0.0;
   for (double v : f)
   {
     fNorm = std::max(fNorm, std::abs(v));
   }
-  for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
+  // both ways: conjugate gradients (threshold 0; first, so that no earlier solution warm-starts it) and the
+  // factorisation of a small system (the default)
+  std::vector<double> iterative;
+  for (const itk::SizeValueType maximum : { itk::SizeValueType{ 0 }, itk::SizeValueType{ 1000000 } })
   {
-    for (unsigned int i = 0; i < D; ++i)
+    solver->SetDirectSolverMaximumDegreesOfFreedom(maximum);
+    solver->SetMesh(mesh);
+    solver->Solve(f, u);
+    EXPECT_EQ(solver->GetDirect(), maximum > 0);
+    EXPECT_EQ(solver->GetLastIterations() > 0, maximum == 0) << "CG products " << solver->GetLastIterations();
+    ASSERT_EQ(u.size(), nDof);
+    const Eigen::VectorXd Ku = Apply(K, u);
+    for (size_t a = 0; a < mesh.NumberOfNodes(); ++a)
     {
-      if (mesh.fixed[a])
+      for (unsigned int i = 0; i < D; ++i)
       {
-        EXPECT_EQ(u[a * D + i], 0.0) << "fixed node " << a;
+        if (mesh.fixed[a])
+        {
+          EXPECT_EQ(u[a * D + i], 0.0) << "fixed node " << a;
+        }
+        else
+        {
+          EXPECT_NEAR(Ku[a * D + i], f[a * D + i], (maximum > 0 ? 1e-12 : 1e-9) * fNorm) << "free node " << a;
+        }
       }
-      else
+    }
+    EXPECT_GT(solver->ElasticEnergy(u), 0.0);
+    if (maximum == 0)
+    {
+      iterative = u;
+    }
+    else
+    {
+      for (size_t i = 0; i < nDof; ++i)
       {
-        EXPECT_NEAR(Ku[a * D + i], f[a * D + i], 1e-9 * fNorm) << "free node " << a;
+        EXPECT_NEAR(u[i], iterative[i], 1e-9 * (1.0 + std::abs(iterative[i])));
       }
     }
   }
-  EXPECT_GT(solver->ElasticEnergy(u), 0.0);
   EXPECT_EQ(solver->GetNumberOfFreeNodes(), interior);
 }
 
@@ -338,10 +359,13 @@ TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
 {
   auto solver = itk::LinearElasticFEMSolver<2>::New();
   EXPECT_TRUE(itk::dmr::test::BasicObjectMethods(solver.GetPointer(), "LinearElasticFEMSolver", "Object"));
-  EXPECT_TRUE(itk::dmr::test::PrintMentions(solver.GetPointer(),
-                                            { "Lambda", "Mu", "NumberOfFreeNodes", "NumberOfDegreesOfFreedom" }));
+  EXPECT_TRUE(itk::dmr::test::PrintMentions(
+    solver.GetPointer(),
+    { "Lambda", "Mu", "NumberOfFreeNodes", "NumberOfDegreesOfFreedom", "DirectSolverMaximumDegreesOfFreedom" }));
   DMR_EXPECT_SET_GET(solver, Lambda, 4.5);
   DMR_EXPECT_SET_GET(solver, Mu, 0.25);
+  EXPECT_EQ(solver->GetDirectSolverMaximumDegreesOfFreedom(), 300u); // the default
+  DMR_EXPECT_SET_GET(solver, DirectSolverMaximumDegreesOfFreedom, 12u);
   solver->SetLambda(-1.0);
   EXPECT_EQ(solver->GetLambda(), 0.0);
   solver->SetMu(0.0);

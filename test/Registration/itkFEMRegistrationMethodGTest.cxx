@@ -105,6 +105,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, RegularGridSize, 6u);
   DMR_EXPECT_SET_GET(method, ReinitializationInterval, 3u);
   DMR_EXPECT_SET_GET(method, SolverTolerance, 1e-8);
+  EXPECT_EQ(method->GetDirectSolverMaximumDegreesOfFreedom(), 300u); // the default
+  DMR_EXPECT_SET_GET(method, DirectSolverMaximumDegreesOfFreedom, 40u);
   DMR_EXPECT_SET_GET(method, ComputeInverse, true);
   method->SetSolverTolerance(1.0); // clamped to the loosest tolerance allowed
   EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
@@ -119,6 +121,9 @@ TEST(FEMRegistrationMethod, SolverToleranceSetsWhereTheSolveStops)
   auto tight = SmallRegistration(MeshMode::Regular, 15);
   auto loose = SmallRegistration(MeshMode::Regular, 15);
   EXPECT_EQ(loose->GetSolverTolerance(), 1e-6); // the default
+  // the tolerance is the conjugate gradients' (this small system would otherwise be factorised)
+  tight->SetDirectSolverMaximumDegreesOfFreedom(0);
+  loose->SetDirectSolverMaximumDegreesOfFreedom(0);
   tight->SetSolverTolerance(1e-12);
   tight->Update();
   loose->Update();

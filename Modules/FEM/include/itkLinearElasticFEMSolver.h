@@ -35,11 +35,17 @@ namespace itk
  * Discretises the Navier-Lame operator of paper Eq. 4 on a triangle/tetrahedron mesh in the grid frame (mm):
  * K[(a,i),(b,j)] = sum_e V_e (lambda d_i phi_a d_j phi_b + mu d_j phi_a d_i phi_b + mu delta_ij grad phi_a . grad
  * phi_b), i.e. the bilinear form of lambda div u div v + 2 mu eps(u):eps(v). Nodes flagged fixed (the image border)
- * have u = 0 (paper 3): their degrees of freedom are eliminated, which leaves K symmetric positive definite. Solve()
- * uses conjugate gradients with a diagonal preconditioner (ITK's bundled Eigen) to a relative residual of Tolerance
- * (default 1e-12), warm-started from the previous solution when the system size is unchanged; it falls back to an
- * exact sparse LDL^T factorisation if CG does not converge. For the 3D meshes of the paper (3000 nodes) this is about
- * 20x faster than factorising every new mesh, and the dynamic mesh changes every iteration.
+ * have u = 0 (paper 3): their degrees of freedom are eliminated, which leaves K symmetric positive definite.
+ *
+ * A system of at most DirectSolverMaximumDegreesOfFreedom free unknowns is factorised by SetMesh (sparse LDL^T,
+ * ITK's bundled Eigen) and solved exactly to rounding. A larger one is solved by conjugate gradients with a diagonal
+ * preconditioner to a relative residual of Tolerance (default 1e-12), warm-started from the previous solution when the
+ * system size is unchanged, falling back to the factorisation if CG does not converge. For the 3D meshes of the paper
+ * (3000 nodes) CG is about 20x faster than factorising every new mesh, and the dynamic mesh changes every iteration.
+ * A small system costs about the same either way, and the exact solve makes the result a continuous function of the
+ * force: a CG stopped at a tolerance jumps by about that tolerance when a rounding difference in its input moves its
+ * stopping iteration, and over many iterations of a large deformation such jumps grow into different registrations
+ * (docs/benchmarks.md, "CPU and GPU on circle-to-leaf").
  * \ingroup DynamicMeshRegistration */
 template <unsigned int VDimension>
 class ITK_TEMPLATE_EXPORT LinearElasticFEMSolver : public Object
@@ -93,7 +99,14 @@ public:
   /** Relative residual |K u - f| / |f| at which conjugate gradients stop (takes effect at the next SetMesh). */
   itkSetClampMacro(Tolerance, double, 1e-16, 1e-2);
   itkGetConstMacro(Tolerance, double);
-  /** CG iterations of the last Solve() (the fallback factorisation ran when it equals the limit). */
+  /** Systems with at most this many free unknowns are factorised and solved exactly; larger ones by CG (takes effect
+   * at the next SetMesh; 0: always CG). */
+  itkSetMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
+  itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
+  /** Whether the current mesh's system is solved by its factorisation (see DirectSolverMaximumDegreesOfFreedom). */
+  itkGetConstMacro(Direct, bool);
+  /** CG iterations of the last Solve(): 0 for a direct solve (the fallback factorisation ran when it equals the
+   * limit). */
   itkGetConstMacro(LastIterations, SizeValueType);
 
 protected:
@@ -113,6 +126,8 @@ private:
   std::vector<int64_t> m_FreeIndex; // dof -> index in the reduced system, -1 when fixed
   using ConjugateGradientType = Eigen::ConjugateGradient<SparseMatrixType, Eigen::Lower | Eigen::Upper>;
   double                                                           m_Tolerance{ 1e-12 };
+  SizeValueType                                                    m_DirectSolverMaximumDegreesOfFreedom{ 300 };
+  bool                                                             m_Direct{ false };
   SparseMatrixType                                                 m_Kf; // reduced to the free degrees of freedom
   std::unique_ptr<ConjugateGradientType>                           m_CG;
   mutable std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;

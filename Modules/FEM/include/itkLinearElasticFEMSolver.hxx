@@ -208,7 +208,19 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
   }
   m_Factor.reset();
   m_CG.reset(new ConjugateGradientType());
-  if (nFree > 0)
+  m_Direct = false;
+  if (nFree > 0 && static_cast<SizeValueType>(nFree) <= m_DirectSolverMaximumDegreesOfFreedom)
+  {
+    // a small system: factorised once per mesh and solved exactly (see the class comment)
+    m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
+    m_Factor->compute(m_Kf);
+    m_Direct = m_Factor->info() == Eigen::Success;
+    if (!m_Direct)
+    {
+      m_Factor.reset();
+    }
+  }
+  if (nFree > 0 && !m_Direct)
   {
     m_CG->setTolerance(m_Tolerance);
     m_CG->setMaxIterations(std::max<Eigen::Index>(1000, 4 * nFree));
@@ -247,32 +259,41 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
   {
     return;
   }
-  // conjugate gradients (diagonal preconditioner), warm-started from the previous solution when the system has the
-  // same size (the dynamic mesh keeps one node per CVT cell, so node a of the next mesh is near node a of this one)
+  // a small system: its factorisation (exact to rounding; no iterations)
   Eigen::VectorXd x;
-  if (m_Warm.size() == rhs.size())
+  if (m_Direct)
   {
-    x = m_CG->solveWithGuess(rhs, m_Warm);
+    x = m_Factor->solve(rhs);
+    m_LastIterations = 0;
   }
   else
   {
-    x = m_CG->solve(rhs);
-  }
-  m_LastIterations = static_cast<SizeValueType>(m_CG->iterations());
-  if (m_CG->info() != Eigen::Success)
-  {
-    // not converged (a very ill-conditioned mesh): the exact sparse factorisation
-    if (!m_Factor)
+    // conjugate gradients (diagonal preconditioner), warm-started from the previous solution when the system has the
+    // same size (the dynamic mesh keeps one node per CVT cell, so node a of the next mesh is near node a of this one)
+    if (m_Warm.size() == rhs.size())
     {
-      m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
-      m_Factor->compute(m_Kf);
-      if (m_Factor->info() != Eigen::Success)
-      {
-        itkExceptionMacro("the stiffness matrix could not be factorised (mesh with "
-                          << m_Mesh->NumberOfNodes() << " nodes, " << m_Kf.rows() << " free degrees of freedom)");
-      }
+      x = m_CG->solveWithGuess(rhs, m_Warm);
     }
-    x = m_Factor->solve(rhs);
+    else
+    {
+      x = m_CG->solve(rhs);
+    }
+    m_LastIterations = static_cast<SizeValueType>(m_CG->iterations());
+    if (m_CG->info() != Eigen::Success)
+    {
+      // not converged (a very ill-conditioned mesh): the exact sparse factorisation
+      if (!m_Factor)
+      {
+        m_Factor.reset(new Eigen::SimplicialLDLT<SparseMatrixType>());
+        m_Factor->compute(m_Kf);
+        if (m_Factor->info() != Eigen::Success)
+        {
+          itkExceptionMacro("the stiffness matrix could not be factorised (mesh with "
+                            << m_Mesh->NumberOfNodes() << " nodes, " << m_Kf.rows() << " free degrees of freedom)");
+        }
+      }
+      x = m_Factor->solve(rhs);
+    }
   }
   m_Warm = x;
   for (size_t i = 0; i < nDof; ++i)
@@ -302,6 +323,8 @@ LinearElasticFEMSolver<D>::PrintSelf(std::ostream & os, Indent indent) const
   os << indent << "NumberOfFreeNodes: " << m_NumberOfFreeNodes << std::endl;
   os << indent << "NumberOfDegreesOfFreedom: " << m_K.rows() << std::endl;
   os << indent << "Tolerance: " << m_Tolerance << std::endl;
+  os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
+  os << indent << "Direct: " << (m_Direct ? "true" : "false") << std::endl;
   os << indent << "LastIterations: " << m_LastIterations << std::endl;
 }
 } // namespace itk

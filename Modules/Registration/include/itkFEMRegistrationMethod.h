@@ -117,6 +117,7 @@ public:
     double       stepScale; // fraction of the full step K^-1 f / beta taken (1, 1/2, ...; 0: no step lowered the MSSD)
     size_t       solverIterations; // conjugate-gradient products K p of this iteration's solve
     bool         deviceSolve;      // the solve ran on the GPU (CUDA back-end, see DeviceSolverMinimumDegreesOfFreedom)
+    bool         directSolve;      // the system was factorised (see DirectSolverMaximumDegreesOfFreedom): no CG
   };
   /** Seconds per stage, summed over iterations (the breakdown of paper Table 1). */
   struct Timing
@@ -224,6 +225,14 @@ public:
   itkSetEnumMacro(Backend, BackendEnum);
   itkGetEnumMacro(Backend, BackendEnum);
   itkGetConstMacro(BackendUsed, BackendEnum);
+  /** Elastic systems solved on the CPU with at most this many free degrees of freedom are factorised (sparse LDL^T) and
+   * solved exactly instead of by conjugate gradients to SolverTolerance. Below a few hundred unknowns the two cost the
+   * same, and the exact solve keeps a registration from depending on the rounding of its sums: a CG stopped at 1e-6
+   * jumps by about that much when a rounding difference moves its stopping iteration, and on a large deformation such
+   * jumps grew into a different registration (circle-to-leaf: CPU and GPU ended 199 px apart somewhere in the
+   * field; docs/benchmarks.md). 0: always CG. Default 300 (both 2D paper experiments, 142 unknowns, are below it). */
+  itkSetMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
+  itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
   /** CUDA back-end: elastic systems with at least this many free degrees of freedom are solved on the device
    * (matrix-free Jacobi-preconditioned conjugate gradients, RegistrationContext::SolveElasticity, to the CPU solver's
    * tolerance; a solve that does not converge falls back to the CPU solver); smaller ones are assembled and solved on
@@ -430,6 +439,7 @@ private:
   size_t            m_DeviceUsedAtPeakBytes{ 0 };
   double            m_SolverTolerance{ 1e-6 };
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
+  SizeValueType     m_DirectSolverMaximumDegreesOfFreedom{ 300 };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
   bool              m_ComputeInverse{ false };
 

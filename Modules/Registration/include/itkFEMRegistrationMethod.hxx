@@ -434,6 +434,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     if (!this->SolveAndSetBeta(nodalForce, nodalU, record.mssd, [&] {
           m_Solver->Solve(nodalForce, nodalU);
           record.solverIterations = m_Solver->GetLastIterations();
+          record.directSolve = m_Solver->GetDirect();
         }))
     {
       // the images already match (no force), or a later dynamic mesh has no free node: nothing more to register
@@ -568,6 +569,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetLambda(m_Lambda);
   m_Solver->SetMu(m_Mu);
   m_Solver->SetTolerance(m_SolverTolerance);
+  m_Solver->SetDirectSolverMaximumDegreesOfFreedom(m_DirectSolverMaximumDegreesOfFreedom);
   m_Labels = nullptr;
   m_InverseDisplacementField = nullptr;
 
@@ -1194,6 +1196,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       }
       m_Solver->Solve(nodalForce, nodalU);
       record.solverIterations = m_Solver->GetLastIterations();
+      record.directSolve = m_Solver->GetDirect();
     });
     if (!solved)
     {
@@ -1335,6 +1338,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DeviceBytes: " << m_DeviceBytes << std::endl;
   os << indent << "DevicePeakBytes: " << m_DevicePeakBytes << std::endl;
   os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
+  os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "ComputeInverse: " << m_ComputeInverse << std::endl;
