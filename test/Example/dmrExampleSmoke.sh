@@ -168,6 +168,15 @@ check_run_outputs() {
   check "report: stop_condition says the run completed its iterations" \
     test "$(json_string "$report" stop_condition)" = "completed the $iterations iterations"
   check "report: mesh_mode is $mode" test "$(json_string "$report" mesh_mode)" = "$mode"
+  # solves factorised (small systems) take no conjugate-gradient products
+  local direct products
+  direct=$(json_number "$report" direct_solves); products=$(json_number "$report" cg_products)
+  if is_number "$direct" && is_number "$products" && awk_true "$direct >= 0 && $direct <= $iterations" &&
+     { [ "$direct" != "$iterations" ] || [ "$products" = 0 ]; }; then
+    pass "report: direct_solves $direct of $iterations, cg_products $products"
+  else
+    fail "report: direct_solves ($direct) and cg_products ($products) do not fit $iterations iterations"
+  fi
   local backend
   backend=$(json_string "$report" backend)
   check "report: backend is cpu or cuda ('$backend')" test "$backend" = cpu -o "$backend" = cuda
@@ -687,6 +696,8 @@ bad-iterations)
   for flag in --lambda --mu --energy-ratio --alpha-factor; do
     expect_bad_input "${flag#--}-1e31" --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" "$flag" 1e31
   done
+  expect_bad_input direct-solve-negative --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" \
+    --direct-solve-max-dofs -1
   ;;
 bad-missing-mesh)
   expect_bad_input missing-mesh --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
