@@ -229,7 +229,7 @@ public:
    * solved exactly instead of by conjugate gradients to SolverTolerance. Below a few hundred unknowns the two cost the
    * same, and the exact solve keeps a registration from depending on the rounding of its sums: a CG stopped at 1e-6
    * jumps by about that much when a rounding difference moves its stopping iteration, and on a large deformation such
-   * jumps grew into a different registration (circle-to-leaf: CPU and GPU ended 199 px apart somewhere in the
+   * jumps grew into a different registration (circle-to-leaf: CPU and GPU ended up to 277 px apart in the
    * field; docs/benchmarks.md). 0: always CG. Default 300 (both 2D paper experiments, 142 unknowns, are below it). */
   itkSetMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
   itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
