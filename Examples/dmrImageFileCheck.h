@@ -31,6 +31,7 @@
 #include <zlib.h>
 #include <algorithm>
 #include <array>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -427,6 +428,14 @@ struct DicomWalk
   bool     pixelData = false, encapsulated = false;
   bool     pixelComplete = false; // the top-level Pixel Data is whole (what follows it cannot spoil the image)
   uint64_t pixelBytes = 0;
+  // the top-level geometry attributes as text, when present: Image Position (Patient) (0020,0032), Image Orientation
+  // (Patient) (0020,0037), Pixel Spacing (0028,0030)
+  struct Text
+  {
+    bool        present = false;
+    std::string value;
+  };
+  Text position, orientation, pixelSpacing;
 
   explicit DicomWalk(const std::string & path)
     : in(path, std::ios::binary)
@@ -587,6 +596,19 @@ struct DicomWalk
     }
   }
 
+  /** The text of a geometry attribute from the current position (the caller moves past the element); a value longer
+   * than any valid one (a DS value has at most 16 bytes) is kept cut to 256 bytes, which the check refuses. */
+  void
+  ReadText(Text & text, uint32_t length)
+  {
+    text.present = true;
+    text.value.assign(std::min<uint32_t>(length, 256), '\0');
+    if (!text.value.empty() && !in.read(&text.value[0], static_cast<std::streamsize>(text.value.size())))
+    {
+      text.value.clear();
+    }
+  }
+
   /** The fragments of encapsulated pixel data, to the sequence delimiter. */
   bool
   Fragments()
@@ -725,14 +747,115 @@ struct DicomWalk
         pixelData = pixelComplete = true;
         pixelBytes = length;
       }
+      else if (depth == 0 && group == 0x0028 && element == 0x0030)
+      {
+        ReadText(pixelSpacing, length);
+      }
       else if (depth == 0 && group == 0x0028)
       {
         Attribute(element, length); // reads the value
+      }
+      else if (depth == 0 && group == 0x0020 && (element == 0x0032 || element == 0x0037))
+      {
+        ReadText(element == 0x0032 ? position : orientation, length);
       }
       in.seekg(static_cast<std::streamoff>(valueAt + length));
     }
   }
 };
+
+/** The numbers of a DICOM decimal string (DS) attribute: backslash-separated values of at most 16 characters, each a
+ * decimal number with optional spaces around it. False when a value is empty, not such a number or not finite
+ * ("nan", "inf" and "1e999" are not). */
+inline bool
+DicomDecimals(const std::string & text, std::vector<double> & values)
+{
+  values.clear();
+  std::string trimmed = text;
+  while (!trimmed.empty() && (trimmed.back() == ' ' || trimmed.back() == '\0'))
+  {
+    trimmed.pop_back();
+  }
+  size_t begin = 0;
+  for (;;)
+  {
+    const size_t end = std::min(trimmed.find('\\', begin), trimmed.size());
+    std::string  item = trimmed.substr(begin, end - begin);
+    const size_t first = item.find_first_not_of(' '), last = item.find_last_not_of(' ');
+    if (first == std::string::npos || item.size() > 16 || item.find_first_not_of("0123456789+-.eE", first) <= last)
+    {
+      return false;
+    }
+    item = item.substr(first, last - first + 1);
+    char *       stop = nullptr;
+    const double v = std::strtod(item.c_str(), &stop);
+    if (stop != item.c_str() + item.size() || !std::isfinite(v))
+    {
+      return false;
+    }
+    values.push_back(v);
+    if (end == trimmed.size())
+    {
+      return true;
+    }
+    begin = end + 1;
+  }
+}
+
+/** Throws itk::ExceptionObject when a geometry attribute the walk read has a value but an unusable one: Pixel Spacing
+ * not two finite numbers above 0, Image Position (Patient) not three finite numbers, Image Orientation (Patient) not
+ * six finite numbers making two unit vectors (within 1 %) at a right angle (within 0.01). GDCM reads such values
+ * without an error and puts defaults or garbage in their place (a spacing of 1 mm, a negative spacing as a flipped
+ * axis, positions at 0), and ITK aborts the process on a position of 1e999. */
+inline void
+CheckDicomGeometry(const std::string & path, const DicomWalk & w)
+{
+  auto refuse = [&path](const char * name, const char * tag, const std::string & value, const char * wanted) {
+    std::string shown = value.substr(0, 64);
+    while (!shown.empty() && (shown.back() == ' ' || shown.back() == '\0'))
+    {
+      shown.pop_back();
+    }
+    for (char & c : shown)
+    {
+      c = std::isprint(static_cast<unsigned char>(c)) ? c : '?';
+    }
+    throw itk::ExceptionObject(__FILE__,
+                               __LINE__,
+                               path + ": its " + name + " " + tag + " is \"" + shown + "\", not " + wanted +
+                                 ": the file's geometry is corrupt",
+                               ITK_LOCATION);
+  };
+  auto given = [](const DicomWalk::Text & t) { // an empty value means "unknown", as if the attribute were absent
+    return t.present && t.value.find_first_not_of(std::string(" \0", 2)) != std::string::npos;
+  };
+  std::vector<double> v;
+  if (given(w.pixelSpacing) && !(DicomDecimals(w.pixelSpacing.value, v) && v.size() == 2 && v[0] > 0.0 && v[1] > 0.0))
+  {
+    refuse("Pixel Spacing", "(0028,0030)", w.pixelSpacing.value, "two finite numbers above 0 (mm)");
+  }
+  if (given(w.position) && !(DicomDecimals(w.position.value, v) && v.size() == 3))
+  {
+    refuse("Image Position (Patient)", "(0020,0032)", w.position.value, "three finite numbers (mm)");
+  }
+  if (given(w.orientation))
+  {
+    bool ok = DicomDecimals(w.orientation.value, v) && v.size() == 6;
+    if (ok)
+    {
+      const double rr = v[0] * v[0] + v[1] * v[1] + v[2] * v[2], cc = v[3] * v[3] + v[4] * v[4] + v[5] * v[5];
+      const double rc = v[0] * v[3] + v[1] * v[4] + v[2] * v[5];
+      ok = std::abs(std::sqrt(rr) - 1.0) <= 0.01 && std::abs(std::sqrt(cc) - 1.0) <= 0.01 && std::abs(rc) <= 0.01;
+    }
+    if (!ok)
+    {
+      refuse("Image Orientation (Patient)",
+             "(0020,0037)",
+             w.orientation.value,
+             "six finite numbers giving two perpendicular unit vectors");
+    }
+  }
+}
 
 /** DICOM (a Part 10 file or a bare data set): every element whole, Pixel Data present and, uncompressed grey values,
  * as long as rows x columns x frames x bytes per sample. No verdict (no exception) on encodings the walk does not
@@ -840,6 +963,7 @@ CheckDicom(const std::string & path)
   {
     ThrowTruncated(path, w.problem); // (after a whole Pixel Data: trailing bytes some writers add, left to GDCM)
   }
+  CheckDicomGeometry(path, w); // the attributes read before any stop are whole
   if (w.noVerdict && !w.pixelComplete)
   {
     return;
@@ -1087,8 +1211,10 @@ CheckEncodedImageFileIsComplete(const std::string & path)
 }
 
 /** Throws itk::ExceptionObject when the DICOM file at path ends before its data elements do, has no Pixel Data or
- * less uncompressed grey pixel data than rows x columns x frames (detail::DicomWalk). Run on every slice of a
- * series: GDCM reads a slice cut short without an error, the missing pixels zeros. */
+ * less uncompressed grey pixel data than rows x columns x frames (detail::DicomWalk), or a Pixel Spacing, Image
+ * Position or Image Orientation (Patient) whose value is not made of usable numbers (detail::CheckDicomGeometry).
+ * Run on every slice of a series: GDCM reads a slice cut short without an error, the missing pixels zeros, and such
+ * geometry as defaults or garbage. */
 inline void
 CheckDicomFileIsComplete(const std::string & path)
 {

@@ -168,7 +168,9 @@ FoldersWithDicomFilesBelow(const std::string & directory)
  * with its series details, by size, orientation and slice thickness, so a series whose slices differ there is
  * refused too. GDCM reads only the files that look like DICOM (detail::LooksLikeDicomFile): Debian's GDCM asserts,
  * aborting the process, on some other files (an 8-byte text file "Etc/UTC" does it), and would wait forever on a
- * FIFO. When other files are present, it scans a temporary folder of links to the DICOM ones. */
+ * FIFO. When other files are present, it scans a temporary folder of links to the DICOM ones. Every DICOM file is
+ * checked first (CheckDicomFileIsComplete: whole, and its geometry attributes numbers), so that a slice cut short or
+ * with a position of "nan" is refused by name before GDCM orders the slices by it. */
 inline std::vector<std::string>
 DicomSeriesFileNames(const std::string & directory)
 {
@@ -204,6 +206,10 @@ DicomSeriesFileNames(const std::string & directory)
                                                  : "; its subdirectories hold DICOM files, give the folder of the "
                                                    "series to register: " +
                                                      where.str() + (folders.size() > 4 ? ", ..." : "")));
+  }
+  for (const auto & name : dicom)
+  {
+    CheckDicomFileIsComplete(base + "/" + name); // GDCM reads a slice cut short as if it were whole
   }
   // the folder GDCM scans: directory itself, or links to its DICOM files only
   std::string scanned = base, links;
@@ -386,11 +392,7 @@ ReadImageOrDicomSeries(const std::string & path)
   {
     auto reader = itk::ImageSeriesReader<TImage>::New();
     reader->SetImageIO(itk::GDCMImageIO::New());
-    const auto files = DicomSeriesFileNames(path);
-    for (const auto & file : files)
-    {
-      CheckDicomFileIsComplete(file); // GDCM reads a slice cut short as if it were whole
-    }
+    const auto files = DicomSeriesFileNames(path); // checks every file (CheckDicomFileIsComplete)
     reader->SetFileNames(files);
     reader->Update();
     CheckDicomSliceGeometry(path, files, reader->GetOutput());

@@ -215,6 +215,45 @@ TEST(ThoraxCT, IncompleteAndMixedSeriesAreRefused)
     EXPECT_NE(std::string(e.GetDescription()).find(cutSlice + ": the file is truncated or corrupt"), std::string::npos)
       << e.GetDescription();
   }
+  // one slice whose Image Position (Patient) is not a finite number: ITK aborted the process (vnl, "matrix has
+  // non-finite elements") on a z of 1e999, and a "nan" was taken as a missing slice
+  for (const std::string z : { "1e999", "nan" })
+  {
+    const std::string bad = scratch.Path() + "/position-" + z;
+    itksys::SystemTools::MakeDirectory(bad);
+    for (size_t s = 0; s < files.size(); ++s)
+    {
+      if (s != 5)
+      {
+        link(files[s], bad);
+      }
+    }
+    const std::string badSlice = bad + "/" + itksys::SystemTools::GetFilenameName(files[5]);
+    std::ifstream     in(files[5], std::ios::binary);
+    std::string       bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const std::string positionTag("\x20\x00\x32\x00", 4); // (0020,0032), implicit VR little endian
+    const size_t      at = bytes.find(positionTag);
+    ASSERT_NE(at, std::string::npos);
+    const uint32_t length = static_cast<uint8_t>(bytes[at + 4]) | (static_cast<uint8_t>(bytes[at + 5]) << 8);
+    std::string    value = bytes.substr(at + 8, length);
+    value = value.substr(0, value.rfind('\\') + 1) + z;
+    ASSERT_LE(value.size(), length);
+    bytes.replace(at + 8, length, value + std::string(length - value.size(), ' '));
+    std::ofstream(badSlice, std::ios::binary) << bytes;
+    EXPECT_THROW(dmrtools::ImageDimensionOf(bad), dmrtools::UsageError);
+    try
+    {
+      dmrtools::ReadImageOrDicomSeries<CTImageType>(bad);
+      ADD_FAILURE() << "a series with a position of " << z << " was read";
+    }
+    catch (const itk::ExceptionObject & e)
+    {
+      EXPECT_NE(std::string(e.GetDescription())
+                  .find(badSlice + ": its Image Position (Patient) (0020,0032) is \"" + value + "\", not three finite"),
+                std::string::npos)
+        << e.GetDescription();
+    }
+  }
   // the complete series reads (DicomSeriesGeometryMatchesItsNiftiConversion checks its geometry)
   EXPECT_EQ(dmrtools::ImageDimensionOf(dir), 3u);
 }

@@ -223,9 +223,12 @@ namespace
 {
 /** Writes a small CT-like DICOM series (16 x 12 slices of 1 x 1 mm, axial orientation, one Series Instance UID) into
  * dir, one file per entry of positions (Image Position (Patient), mm), named in reverse order so that only the
- * positions order them. */
+ * positions order them. `attributes` (tag "gggg|eeee" -> value) replace the written ones in every slice. */
 void
-WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3>> & positions, bool compressed = false)
+WriteDicomSeries(const std::string &                                      dir,
+                 const std::vector<std::array<double, 3>> &               positions,
+                 bool                                                     compressed = false,
+                 const std::vector<std::pair<std::string, std::string>> & attributes = {})
 {
   using SliceType = itk::Image<short, 2>;
   itksys::SystemTools::MakeDirectory(dir);
@@ -257,6 +260,10 @@ WriteDicomSeries(const std::string & dir, const std::vector<std::array<double, 3
     set("0020|0037", "1\\0\\0\\0\\1\\0");
     set("0028|0030", "1\\1");
     set("0018|0050", "1");
+    for (const auto & attribute : attributes)
+    {
+      set(attribute.first, attribute.second);
+    }
     auto io = itk::GDCMImageIO::New();
     io->KeepOriginalUIDOn();
     auto writer = itk::ImageFileWriter<SliceType>::New();
@@ -617,5 +624,107 @@ TEST(ImageFileCheck, MetaImageHeaderWhoseDimensionsMetaIOWouldLoopOverIsRefused)
   WriteBytes(path, whole.substr(0, spacing) + "ElementSpacing = 1e-320 1" + whole.substr(end));
   EXPECT_NE(ErrorOf([&] { dmrtools::ImageDimensionOf(path); }).find("below the smallest normal double"),
             std::string::npos);
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
+namespace
+{
+/** Replaces the value of the top-level element (group,element) of an implicit VR little endian DICOM file (as
+ * WriteDicomSeries writes them) by `value`, padded with a space to an even length. */
+void
+SetDicomText(const std::string & file, uint16_t group, uint16_t element, std::string value)
+{
+  if (value.size() % 2)
+  {
+    value += ' ';
+  }
+  std::string       bytes = ReadBytes(file);
+  const std::string tag{ static_cast<char>(group & 0xff),
+                         static_cast<char>(group >> 8),
+                         static_cast<char>(element & 0xff),
+                         static_cast<char>(element >> 8) };
+  const size_t      at = bytes.find(tag, 132);
+  ASSERT_NE(at, std::string::npos) << file;
+  uint32_t length = 0;
+  std::memcpy(&length, &bytes[at + 4], 4);
+  const uint32_t newLength = static_cast<uint32_t>(value.size());
+  bytes.replace(at + 8, length, value);
+  std::memcpy(&bytes[at + 4], &newLength, 4);
+  WriteBytes(file, bytes);
+}
+} // namespace
+
+TEST(ImageFileCheck, DicomGeometryThatIsNotANumberIsRefusedNamingTheElement)
+{
+  // Regression test (a fixed bug): GDCM reads a Pixel Spacing that is not two numbers above 0 without an error and
+  // gives 1 mm instead (a negative one flips the axis), a series whose positions are not numbers at 1 mm from 0, and a
+  // position of 1e999 in one slice made ITK abort the process (vnl: "matrix has non-finite elements")
+  using CTType = itk::Image<float, 3>;
+  const std::string                  dir = WorkDir();
+  std::vector<std::array<double, 3>> positions;
+  for (int k = 0; k < 4; ++k)
+  {
+    positions.push_back({ -8.0, -6.0, 2.5 * k });
+  }
+  struct Case
+  {
+    uint16_t    group, element;
+    std::string value;
+    bool        allSlices;
+    std::string expected; // in the message; "" when the series reads
+  };
+  const std::string spacing = "Pixel Spacing (0028,0030) is \"",
+                    position = "Image Position (Patient) (0020,0032) is \"";
+  const std::string       orientation = "Image Orientation (Patient) (0020,0037) is \"";
+  const std::vector<Case> cases{
+    { 0x0028, 0x0030, "nan\\nan", true, spacing + "nan\\nan\", not two finite numbers above 0 (mm)" },
+    { 0x0028, 0x0030, "0\\0", true, spacing + "0\\0\"" },
+    { 0x0028, 0x0030, "-1\\1", true, spacing + "-1\\1\"" },
+    { 0x0028, 0x0030, "inf\\1", true, spacing + "inf\\1\"" },
+    { 0x0028, 0x0030, "1\\one", true, spacing + "1\\one\"" },
+    { 0x0028, 0x0030, "1", true, spacing + "1\"" },
+    { 0x0028, 0x0030, "1\\1\\1", true, spacing + "1\\1\\1\"" },
+    { 0x0028, 0x0030, "nan\\nan", false, "slice1.dcm: its " + spacing + "nan\\nan\"" },
+    { 0x0020, 0x0037, "nan\\0\\0\\0\\1\\0", true, orientation + "nan\\0\\0\\0\\1\\0\", not six finite numbers" },
+    { 0x0020, 0x0037, "0\\0\\0\\0\\0\\0", true, orientation + "0\\0\\0\\0\\0\\0\"" },
+    { 0x0020, 0x0037, "1\\0\\0\\1\\0\\0", true, orientation + "1\\0\\0\\1\\0\\0\"" },
+    { 0x0020,
+      0x0032,
+      "nan\\0\\0",
+      false,
+      "slice1.dcm: its " + position + "nan\\0\\0\", not three finite numbers (mm)" },
+    { 0x0020, 0x0032, "nan\\0\\0", true, position + "nan\\0\\0\"" },
+    { 0x0020, 0x0032, "-8\\-6\\1e999", false, position + "-8\\-6\\1e999\"" },
+    // what reads: values with spaces and exponents, empty values (unknown, as if absent), attributes not used
+    { 0x0028, 0x0030, " 1.0 \\+1E0", true, "" },
+    { 0x0028, 0x0030, "", true, "" },
+    { 0x0020, 0x0037, "1\\0\\0\\0\\0.99999\\0", true, "" },
+    { 0x0018, 0x0050, "nan", true, "" }
+  };
+  for (size_t i = 0; i < cases.size(); ++i)
+  {
+    const Case &      c = cases[i];
+    const std::string series = dir + "/case" + std::to_string(i);
+    WriteDicomSeries(series, positions);
+    for (int k = 1; k <= (c.allSlices ? 4 : 1); ++k)
+    {
+      SetDicomText(series + "/slice" + std::to_string(k) + ".dcm", c.group, c.element, c.value);
+    }
+    const std::string what = ErrorOf([&] {
+      const auto volume = dmrtools::ReadImageOrDicomSeries<CTType>(series);
+      EXPECT_NEAR(volume->GetSpacing()[0], 1.0, 1e-5) << c.value;
+      EXPECT_NEAR(volume->GetSpacing()[2], 2.5, 1e-6) << c.value;
+      EXPECT_NEAR(volume->GetOrigin()[2], 0.0, 1e-6) << c.value;
+    });
+    if (c.expected.empty())
+    {
+      EXPECT_EQ(what, "") << c.value;
+    }
+    else
+    {
+      EXPECT_NE(what.find(c.expected), std::string::npos) << c.value << ": " << what;
+      EXPECT_NE(what.find("the file's geometry is corrupt"), std::string::npos) << what;
+    }
+  }
   itksys::SystemTools::RemoveADirectory(dir);
 }
