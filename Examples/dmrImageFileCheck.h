@@ -1087,10 +1087,12 @@ SformDecompositionsReturn(const std::array<float, 12> & srow, std::chrono::milli
   return returned.wait_for(wait) == std::future_status::ready;
 }
 
-/** The NIfTI-1 sform, before ITK 5.2's reader sees it: a NaN or infinite entry anywhere in srow_x/y/z aborts the
- * process in that reader (vnl's assert_finite in the SVDs of SformDecompositionsReturn), and some finite sforms keep
- * it from ever returning (tried when `decompose`). Throws itk::ExceptionObject for either, for a .nii, .nia, .hdr or
- * .img file (gzipped or not); Analyze headers (no NIfTI magic) and headers with sform_code 0 have no sform. */
+/** The NIfTI-1 geometry, before ITK 5.2's reader sees it. The sform: a NaN or infinite entry anywhere in srow_x/y/z
+ * aborts the process in that reader (vnl's assert_finite in the SVDs of SformDecompositionsReturn), and some finite
+ * sforms keep it from ever returning (tried when `decompose`). The voxel sizes pixdim[1..3] and, with qform_code > 0,
+ * the qform's parameters: the NIfTI library reads NaN or infinite ones as 1 mm or as some rotation. Throws
+ * itk::ExceptionObject for any of these, for a .nii, .nia, .hdr or .img file (gzipped or not); Analyze headers (no
+ * NIfTI magic) have only the voxel sizes, and headers with sform_code 0 have no sform. */
 inline void
 CheckNiftiSform(const std::string & path, bool decompose)
 {
@@ -1146,11 +1148,49 @@ CheckNiftiSform(const std::string & path, bool decompose)
       }
       swap = true;
     }
+    auto floatAt = [&](size_t at) {
+      const uint32_t bits = swap ? BigEndian32(p + at) : LittleEndian32(p + at);
+      float          f;
+      std::memcpy(&f, &bits, sizeof f);
+      return f;
+    };
+    auto halfAt = [&](size_t at) {
+      return static_cast<int16_t>(swap ? (p[at] << 8) | p[at + 1] : p[at] | (p[at + 1] << 8));
+    };
+    // the voxel sizes of the image's axes (pixdim[1..3]): the NIfTI library puts 1 in place of a NaN or infinite one,
+    // so a corrupt header was read as a 1 mm grid without a word
+    const int16_t axes = std::min<int16_t>(swap ? swapped : dim0, 3);
+    for (int16_t i = 1; i <= axes; ++i)
+    {
+      const float v = floatAt(76 + 4 * static_cast<size_t>(i));
+      if (!std::isfinite(v))
+      {
+        std::ostringstream what;
+        what << path << ": the NIfTI header's voxel size pixdim[" << i << "] = " << v
+             << " is not a finite number: the header is corrupt";
+        throw itk::ExceptionObject(__FILE__, __LINE__, what.str(), ITK_LOCATION);
+      }
+    }
     if (!(p[344] == 'n' && (p[345] == 'i' || p[345] == '+') && p[346] == '1' && p[347] == 0))
     {
-      return; // Analyze 7.5: no sform
+      return; // Analyze 7.5: no qform, no sform
     }
-    const int16_t sformCode = static_cast<int16_t>(swap ? (p[254] << 8) | p[255] : p[254] | (p[255] << 8));
+    // the qform (quatern_b, c, d, qoffset_x, y, z), when used: the NIfTI library reads NaN parameters as a rotation
+    const int16_t qformCode = halfAt(252);
+    for (unsigned int i = 0; qformCode > 0 && i < 6; ++i)
+    {
+      const float v = floatAt(256 + 4 * i);
+      if (!std::isfinite(v))
+      {
+        static const char * const names[] = { "quatern_b", "quatern_c", "quatern_d",
+                                              "qoffset_x", "qoffset_y", "qoffset_z" };
+        std::ostringstream        what;
+        what << path << ": the NIfTI header's qform (qform_code " << qformCode << ") has " << names[i] << " = " << v
+             << ", not a finite number: the header is corrupt";
+        throw itk::ExceptionObject(__FILE__, __LINE__, what.str(), ITK_LOCATION);
+      }
+    }
+    const int16_t sformCode = halfAt(254);
     if (sformCode <= 0)
     {
       return;

@@ -938,6 +938,15 @@ Run(const Options & opt)
                 << "," << opt.windowHigh << " (its intensities lie in [" << std::get<2>(named).first << ", "
                 << std::get<2>(named).second << "]): nothing to register; choose a window that overlaps them";
       }
+      else if (std::get<1>(named) == moving.GetPointer() && movingResampled)
+      {
+        // the image as read is not constant: the part of it that lies on the fixed grid is (it named the image)
+        message << "the moving image has constant intensity " << range.first
+                << " where it lies on the fixed image's grid (it covers "
+                << (movingOverlap < 0.01 ? std::string("less than 1")
+                                         : std::to_string(std::lround(100.0 * movingOverlap)))
+                << " % of it): nothing to register; check the images' origins, spacings and directions";
+      }
       else
       {
         message << "the " << std::get<0>(named) << " image has constant intensity " << range.first

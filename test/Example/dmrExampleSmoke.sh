@@ -989,10 +989,19 @@ bad-no-overlap)
     printf 'ElementDataFile = LOCAL\n'; awk 'BEGIN { for (i = 0; i < 64; i++) printf "%c", 65 + (i * 7) % 50 }'; } \
     >"$W/far.mha"
   expect_bad_input no-overlap --fixed "$DATA/fixed.nii.gz" --moving "$W/far.mha" --nodes 30 --iterations 2
+  disk_mha "$W/disk.mha" 0 "Offset = 0 0"
+  disk_mha "$W/disk-corner.mha" 0 "Offset = 14 14"
+  expect_bad_input constant-overlap --fixed "$W/disk.mha" --moving "$W/disk-corner.mha" --nodes 8 --iterations 2
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$W/far.mha" --output-dir "$W/out-far" --nodes 30 --iterations 2
   check "no overlap: a usage error, exit code 2 (got $RC)" test "$RC" -eq 2
   check "the message says why ($(cat "$W/stderr"))" \
     grep -q "the moving image does not overlap the fixed image in physical space" "$W/stderr"
+  # an overlap where the moving image is constant: the message said "the moving image has constant intensity 20",
+  # which the image as read is not
+  run_reg --fixed "$W/disk.mha" --moving "$W/disk-corner.mha" --output-dir "$W/out-constant" --nodes 8 --iterations 2
+  check "the message says where the moving image is constant ($(cat "$W/stderr"))" grep -q \
+    "the moving image has constant intensity 20 where it lies on the fixed image's grid (it covers 2 % of it)" \
+    "$W/stderr"
   sed 's/^Offset = 1000 1000$/Offset = 508 508/' "$W/far.mha" >"$W/corner.mha"
   run_reg --fixed "$DATA/fixed.nii.gz" --moving "$W/corner.mha" --output-dir "$W/out-corner" --nodes 30 --iterations 2
   check "small overlap: exit 0 ($(cat "$W/stderr"))" test "$RC" = 0

@@ -573,6 +573,55 @@ TEST(ImageFileCheck, NiftiSformThatItkCannotTakeApartIsRefusedBeforeItkReadsIt)
   itksys::SystemTools::RemoveADirectory(dir);
 }
 
+TEST(ImageFileCheck, NiftiVoxelSizeOrQformThatIsNotFiniteIsRefused)
+{
+  // Regression test (a fixed bug): the NIfTI library reads a NaN or infinite voxel size (pixdim[1..3], offsets 80..88)
+  // as 1 mm and NaN or infinite qform parameters (quatern_b..qoffset_z, offsets 256..276, used with qform_code > 0 at
+  // offset 252) as some rotation or offset; the tool registered such files without a word
+  const std::string dir = WorkDir();
+  const std::string path = dir + "/qform.nii";
+  WriteTestImage<float>(path);
+  const std::string whole = ReadBytes(path);
+  ASSERT_GE(whole.size(), 352u);
+  const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
+  struct Case
+  {
+    size_t      at;
+    float       value;
+    int16_t     qformCode;
+    std::string said; // "" when the file reads
+  };
+  for (const Case & c :
+       { Case{ 80, nan, 0, "the NIfTI header's voxel size pixdim[1] = nan is not a finite number" },
+         Case{ 84, -inf, 1, "the NIfTI header's voxel size pixdim[2] = -inf is not a finite number" },
+         Case{ 256, nan, 1, "the NIfTI header's qform (qform_code 1) has quatern_b = nan, not a finite" },
+         Case{ 264, inf, 2, "has quatern_d = inf, not a finite number: the header is corrupt" },
+         Case{ 268, -inf, 1, "has qoffset_x = -inf, not a finite number" },
+         Case{ 276, nan, 1, "has qoffset_z = nan" }, // a 2D image's qform is 3D all the same
+         Case{ 256, nan, 0, "" },                    // qform_code 0: the qform is not used
+         Case{ 88, nan, 1, "" },                     // pixdim[3] of a 2D image
+         Case{ 80, 0.0f, 0, "" } })                  // 0: the NIfTI library's 1 mm, as other readers take it
+  {
+    std::string bytes = whole;
+    SetFloat(bytes, c.at, c.value);
+    std::memcpy(&bytes[252], &c.qformCode, sizeof c.qformCode);
+    WriteBytes(path, bytes);
+    SCOPED_TRACE(std::to_string(c.at) + " " + std::to_string(c.value) + " qform_code " + std::to_string(c.qformCode));
+    if (c.said.empty())
+    {
+      EXPECT_NO_THROW(dmrtools::CheckImageFileBeforeReading(path));
+      EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<Image2DType>(path)->GetPixel({ { 3, 2 } }), 3.0f * 7 + 2 * 13 + 20);
+      continue;
+    }
+    const std::string said = ErrorOf([&] { dmrtools::CheckImageFileBeforeReading(path); });
+    EXPECT_EQ(said.rfind(path + ": the NIfTI header's ", 0), 0u) << said;
+    EXPECT_NE(said.find(c.said), std::string::npos) << said;
+    EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+    EXPECT_NE(ErrorOf([&] { dmrtools::ReadImageOrDicomSeries<Image2DType>(path); }).find(c.said), std::string::npos);
+  }
+  itksys::SystemTools::RemoveADirectory(dir);
+}
+
 TEST(ImageFileCheck, GeometryThatIsNotFiniteIsRefusedBeforeAnImageTakesIt)
 {
   // Regression test (a fixed bug): a legacy VTK file with SPACING nan aborted the tool (ITK 5.2 asserts finite
