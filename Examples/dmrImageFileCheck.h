@@ -254,16 +254,27 @@ CheckNifti(const std::string & path, uint64_t itkBytes)
   }
   const auto * p = reinterpret_cast<const unsigned char *>(h.data());
   uint32_t     sizeofHdr = LittleEndian32(p);
-  const bool   swap = sizeofHdr != 348 && sizeofHdr != 540;
-  auto         word = [&](size_t at) { return swap ? BigEndian32(p + at) : LittleEndian32(p + at); };
-  auto         half = [&](size_t at) {
+  bool         swap = sizeofHdr != 348 && sizeofHdr != 540;
+  const bool   wrongSize = swap && BigEndian32(p) != 348 && BigEndian32(p) != 540;
+  if (wrongSize)
+  {
+    // a wrong sizeof_hdr: the NIfTI library reads the header as NIfTI-1 all the same, its byte order told by dim[0]
+    const int little = static_cast<int16_t>(p[40] | (p[41] << 8)), big = static_cast<int16_t>((p[40] << 8) | p[41]);
+    if (!(little >= 1 && little <= 7) && !(big >= 1 && big <= 7))
+    {
+      return; // the reader refuses it
+    }
+    swap = !(little >= 1 && little <= 7);
+  }
+  auto word = [&](size_t at) { return swap ? BigEndian32(p + at) : LittleEndian32(p + at); };
+  auto half = [&](size_t at) {
     return static_cast<int16_t>(swap ? (p[at] << 8) | p[at + 1] : p[at] | (p[at + 1] << 8));
   };
   auto dword = [&](size_t at) {
     const uint64_t lo = word(swap ? at + 4 : at), hi = word(swap ? at : at + 4);
     return static_cast<int64_t>((hi << 32) | lo);
   };
-  sizeofHdr = word(0);
+  sizeofHdr = wrongSize ? 348 : word(0);
   double  offset = 0.0;
   int64_t dim[8] = {};
   int     datatype = 0;

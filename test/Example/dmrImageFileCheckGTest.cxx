@@ -208,6 +208,35 @@ TEST(ImageFileCheck, ScaledNiftiIsCheckedByTheTypeItStores)
   EXPECT_NO_THROW(CheckFile(path));
 }
 
+namespace
+{
+/** The description of the itk::ExceptionObject (or the text of the UsageError) that f throws; "" if none. */
+template <typename TFunction>
+std::string
+ErrorOf(TFunction && f)
+{
+  try
+  {
+    f();
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    return e.GetDescription();
+  }
+  catch (const dmrtools::UsageError & e)
+  {
+    return e.what();
+  }
+  return std::string();
+}
+
+void
+SetFloat(std::string & bytes, size_t at, float value)
+{
+  std::memcpy(&bytes[at], &value, sizeof value);
+}
+} // namespace
+
 TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
 {
   const std::string path = WorkDir() + "/short.nii";
@@ -217,6 +246,38 @@ TEST(ImageFileCheck, ReadersRefuseTruncatedRawFiles)
   WriteBytes(path, whole.substr(0, whole.size() - 100));
   EXPECT_THROW(dmrtools::ReadImageOrDicomSeries<Image2DType>(path), itk::ExceptionObject);
   EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+  // a header whose sizeof_hdr is wrong, which the NIfTI library reads all the same (in either byte order): the check
+  // did not, and a file cut short was read with zeros in place of its missing pixels
+  for (const bool bigEndian : { false, true })
+  {
+    std::string wrong = whole;
+    std::memset(&wrong[0], 0xff, 4);
+    if (bigEndian)
+    {
+      auto swapBytes = [&wrong](size_t at, size_t n) { std::reverse(wrong.begin() + at, wrong.begin() + at + n); };
+      for (size_t at = 40; at < 56; at += 2) // dim[0..7]
+      {
+        swapBytes(at, 2);
+      }
+      swapBytes(70, 2);  // datatype
+      swapBytes(72, 2);  // bitpix
+      swapBytes(108, 4); // vox_offset
+      for (size_t at = 352; at < wrong.size(); at += 4)
+      {
+        swapBytes(at, 4); // the float pixels
+      }
+    }
+    WriteBytes(path, wrong);
+    SCOPED_TRACE(bigEndian ? "big endian" : "little endian");
+    EXPECT_EQ(dmrtools::ReadImageOrDicomSeries<Image2DType>(path)->GetPixel({ { 3, 2 } }), 3.0f * 7 + 2 * 13 + 20);
+    WriteBytes(path, wrong.substr(0, wrong.size() - 100));
+    EXPECT_NE(ErrorOf([&] {
+                dmrtools::ReadImageOrDicomSeries<Image2DType>(path);
+              }).find("the file is truncated or corrupt (its header describes 4800 bytes of pixel data from byte 352"),
+              std::string::npos)
+      << ErrorOf([&] { dmrtools::ReadImageOrDicomSeries<Image2DType>(path); });
+    EXPECT_THROW(dmrtools::ImageDimensionOf(path), dmrtools::UsageError);
+  }
 }
 
 namespace
@@ -449,35 +510,6 @@ TEST(ImageFileCheck, DicomFileCutShortIsRefusedWhereverItIsCut)
   }
   itksys::SystemTools::RemoveADirectory(dir);
 }
-
-namespace
-{
-/** The description of the itk::ExceptionObject (or the text of the UsageError) that f throws; "" if none. */
-template <typename TFunction>
-std::string
-ErrorOf(TFunction && f)
-{
-  try
-  {
-    f();
-  }
-  catch (const itk::ExceptionObject & e)
-  {
-    return e.GetDescription();
-  }
-  catch (const dmrtools::UsageError & e)
-  {
-    return e.what();
-  }
-  return std::string();
-}
-
-void
-SetFloat(std::string & bytes, size_t at, float value)
-{
-  std::memcpy(&bytes[at], &value, sizeof value);
-}
-} // namespace
 
 TEST(ImageFileCheck, NiftiSformThatItkCannotTakeApartIsRefusedBeforeItkReadsIt)
 {
