@@ -39,6 +39,30 @@ ThoraxFolder()
 {
   return dmrtest::SharedDataFolder("thorax-ct-dicom");
 }
+
+/** The bytes of a slice of the series (implicit VR little endian) and where the value of its top-level element `tag`
+ * (4 bytes: group and element, little endian) lies; at is npos when the element is missing. */
+struct SliceElement
+{
+  std::string bytes;
+  size_t      at = std::string::npos; // the value's first byte
+  uint32_t    length = 0;
+};
+
+SliceElement
+FindSliceElement(const std::string & file, const std::string & tag)
+{
+  std::ifstream in(file, std::ios::binary);
+  SliceElement  e;
+  e.bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  const size_t header = e.bytes.find(tag);
+  if (header != std::string::npos && header + 8 <= e.bytes.size())
+  {
+    e.at = header + 8;
+    e.length = static_cast<uint8_t>(e.bytes[header + 4]) | (static_cast<uint8_t>(e.bytes[header + 5]) << 8);
+  }
+  return e;
+}
 } // namespace
 
 TEST(ThoraxCT, DicomSeriesGeometryMatchesItsNiftiConversion)
@@ -159,13 +183,10 @@ TEST(ThoraxCT, IncompleteAndMixedSeriesAreRefused)
     link(files[s], mixed);
   }
   {
-    std::ifstream     in(files[0], std::ios::binary);
-    std::string       bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    const std::string seriesUidTag("\x20\x00\x0e\x00", 4); // (0020,000E), implicit VR little endian
-    const size_t      at = bytes.find(seriesUidTag);
-    ASSERT_NE(at, std::string::npos);
-    const uint32_t length = static_cast<uint8_t>(bytes[at + 4]) | (static_cast<uint8_t>(bytes[at + 5]) << 8);
-    size_t         last = at + 8 + length - 1;
+    SliceElement uid = FindSliceElement(files[0], std::string("\x20\x00\x0e\x00", 4)); // (0020,000E)
+    ASSERT_NE(uid.at, std::string::npos);
+    std::string & bytes = uid.bytes;
+    size_t        last = uid.at + uid.length - 1;
     if (bytes[last] == '\0')
     {
       --last; // the padding of an odd-length UID
@@ -229,17 +250,13 @@ TEST(ThoraxCT, IncompleteAndMixedSeriesAreRefused)
       }
     }
     const std::string badSlice = bad + "/" + itksys::SystemTools::GetFilenameName(files[5]);
-    std::ifstream     in(files[5], std::ios::binary);
-    std::string       bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    const std::string positionTag("\x20\x00\x32\x00", 4); // (0020,0032), implicit VR little endian
-    const size_t      at = bytes.find(positionTag);
-    ASSERT_NE(at, std::string::npos);
-    const uint32_t length = static_cast<uint8_t>(bytes[at + 4]) | (static_cast<uint8_t>(bytes[at + 5]) << 8);
-    std::string    value = bytes.substr(at + 8, length);
+    SliceElement      position = FindSliceElement(files[5], std::string("\x20\x00\x32\x00", 4)); // (0020,0032)
+    ASSERT_NE(position.at, std::string::npos);
+    std::string value = position.bytes.substr(position.at, position.length);
     value = value.substr(0, value.rfind('\\') + 1) + z;
-    ASSERT_LE(value.size(), length);
-    bytes.replace(at + 8, length, value + std::string(length - value.size(), ' '));
-    std::ofstream(badSlice, std::ios::binary) << bytes;
+    ASSERT_LE(value.size(), position.length);
+    position.bytes.replace(position.at, position.length, value + std::string(position.length - value.size(), ' '));
+    std::ofstream(badSlice, std::ios::binary) << position.bytes;
     EXPECT_THROW(dmrtools::ImageDimensionOf(bad), dmrtools::UsageError);
     try
     {

@@ -341,6 +341,21 @@ WriteDicomSeries(const std::string &                                      dir,
 }
 } // namespace
 
+namespace
+{
+/** Image Positions (Patient) of n axial slices 2.5 mm apart from z = 0, for WriteDicomSeries. */
+std::vector<std::array<double, 3>>
+AxialPositions(int n)
+{
+  std::vector<std::array<double, 3>> positions;
+  for (int k = 0; k < n; ++k)
+  {
+    positions.push_back({ -8.0, -6.0, 2.5 * k });
+  }
+  return positions;
+}
+} // namespace
+
 TEST(ImageFileCheck, DicomSeriesMustStackItsSlicesEvenlyAlongTheirNormal)
 {
   // ITK's series reader builds a volume with the first slice's orthogonal axes and the mean gap as spacing, and only
@@ -419,12 +434,8 @@ TEST(ImageFileCheck, DicomFileCutShortIsRefusedWhereverItIsCut)
   // GDCM reads a DICOM slice that ends early as if it were whole, with the missing pixels zeros: a series with one
   // slice cut by an interrupted transfer was registered with that slice partly at 0 (-1024 HU after rescaling)
   using CTType = itk::Image<float, 3>;
-  const std::string                  dir = WorkDir();
-  std::vector<std::array<double, 3>> positions;
-  for (int k = 0; k < 6; ++k)
-  {
-    positions.push_back({ -8.0, -6.0, 2.5 * k });
-  }
+  const std::string                        dir = WorkDir();
+  const std::vector<std::array<double, 3>> positions = AxialPositions(6);
   for (const bool jpeg : { false, true }) // implicit VR little endian, and explicit with JPEG fragments
   {
     const std::string series = dir + (jpeg ? "/jpeg" : "/native");
@@ -741,12 +752,8 @@ TEST(ImageFileCheck, DicomGeometryThatIsNotANumberIsRefusedNamingTheElement)
   // gives 1 mm instead (a negative one flips the axis), a series whose positions are not numbers at 1 mm from 0, and a
   // position of 1e999 in one slice made ITK abort the process (vnl: "matrix has non-finite elements")
   using CTType = itk::Image<float, 3>;
-  const std::string                  dir = WorkDir();
-  std::vector<std::array<double, 3>> positions;
-  for (int k = 0; k < 4; ++k)
-  {
-    positions.push_back({ -8.0, -6.0, 2.5 * k });
-  }
+  const std::string                        dir = WorkDir();
+  const std::vector<std::array<double, 3>> positions = AxialPositions(4);
   struct Case
   {
     uint16_t    group, element;
