@@ -607,13 +607,13 @@ struct DicomWalk
     }
   }
 
-  /** The text of a geometry attribute from the current position (the caller moves past the element); a value longer
-   * than any valid one (a DS value has at most 16 bytes) is kept cut to 256 bytes, which the check refuses. */
+  /** The text of a geometry attribute from the current position (the caller moves past the element), at most 4096
+   * bytes (six DS values take at most 101). */
   void
   ReadText(Text & text, uint32_t length)
   {
     text.present = true;
-    text.value.assign(std::min<uint32_t>(length, 256), '\0');
+    text.value.assign(std::min<uint32_t>(length, 4096), '\0');
     if (!text.value.empty() && !in.read(&text.value[0], static_cast<std::streamsize>(text.value.size())))
     {
       text.value.clear();
@@ -775,9 +775,9 @@ struct DicomWalk
   }
 };
 
-/** The numbers of a DICOM decimal string (DS) attribute: backslash-separated values of at most 16 characters, each a
- * decimal number with optional spaces around it. False when a value is empty, not such a number or not finite
- * ("nan", "inf" and "1e999" are not). */
+/** The numbers of a DICOM decimal string (DS) attribute: backslash-separated values, each a decimal number with
+ * optional spaces around it (longer than the standard's 16 characters too: some writers exceed it, and GDCM reads
+ * them). False when a value is empty, not such a number or not finite ("nan", "inf" and "1e999" are not). */
 inline bool
 DicomDecimals(const std::string & text, std::vector<double> & values)
 {
@@ -793,7 +793,7 @@ DicomDecimals(const std::string & text, std::vector<double> & values)
     const size_t end = std::min(trimmed.find('\\', begin), trimmed.size());
     std::string  item = trimmed.substr(begin, end - begin);
     const size_t first = item.find_first_not_of(' '), last = item.find_last_not_of(' ');
-    if (first == std::string::npos || item.size() > 16 || item.find_first_not_of("0123456789+-.eE", first) <= last)
+    if (first == std::string::npos || item.find_first_not_of("0123456789+-.eE", first) <= last)
     {
       return false;
     }

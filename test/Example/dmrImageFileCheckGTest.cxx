@@ -785,6 +785,7 @@ TEST(ImageFileCheck, DicomGeometryThatIsNotANumberIsRefusedNamingTheElement)
     { 0x0020, 0x0032, "-8\\-6\\1e999", false, position + "-8\\-6\\1e999\"" },
     // what reads: values with spaces and exponents, empty values (unknown, as if absent), attributes not used
     { 0x0028, 0x0030, " 1.0 \\+1E0", true, "" },
+    { 0x0028, 0x0030, "1.00000000000000000\\1.00000000000000000", true, "" }, // 19 characters: longer than DS allows
     { 0x0028, 0x0030, "", true, "" },
     { 0x0020, 0x0037, "1\\0\\0\\0\\0.99999\\0", true, "" },
     { 0x0018, 0x0050, "nan", true, "" }
