@@ -227,6 +227,17 @@ NiftiBytesPerVoxel(int datatype)
   }
 }
 
+/** The byte order of a NIfTI-1 header told by its dim[0] (offset 40), as the NIfTI library tells it for a header
+ * whose sizeof_hdr it does not trust: swap when dim[0] is 1..7 only with its bytes swapped. False when it is in
+ * neither order (the reader refuses such a header). */
+inline bool
+Nifti1SwapFromDim0(const unsigned char * p, bool & swap)
+{
+  const int little = static_cast<int16_t>(p[40] | (p[41] << 8)), big = static_cast<int16_t>((p[40] << 8) | p[41]);
+  swap = !(little >= 1 && little <= 7);
+  return !swap || (big >= 1 && big <= 7);
+}
+
 /** NIfTI-1/2 (and Analyze): vox_offset + the pixel bytes, in the .nii file or the .img beside a .hdr. The bytes are
  * the header's own (dim[1..dim[0]] x the size of its datatype), those of the type stored in the file: ITK reports a
  * NIfTI whose scl_slope/scl_inter scale the values (common for CT and MR from DICOM converters) as float pixels,
@@ -256,15 +267,10 @@ CheckNifti(const std::string & path, uint64_t itkBytes)
   uint32_t     sizeofHdr = LittleEndian32(p);
   bool         swap = sizeofHdr != 348 && sizeofHdr != 540;
   const bool   wrongSize = swap && BigEndian32(p) != 348 && BigEndian32(p) != 540;
-  if (wrongSize)
+  // a wrong sizeof_hdr: the NIfTI library reads the header as NIfTI-1 all the same, its byte order told by dim[0]
+  if (wrongSize && !Nifti1SwapFromDim0(p, swap))
   {
-    // a wrong sizeof_hdr: the NIfTI library reads the header as NIfTI-1 all the same, its byte order told by dim[0]
-    const int little = static_cast<int16_t>(p[40] | (p[41] << 8)), big = static_cast<int16_t>((p[40] << 8) | p[41]);
-    if (!(little >= 1 && little <= 7) && !(big >= 1 && big <= 7))
-    {
-      return; // the reader refuses it
-    }
-    swap = !(little >= 1 && little <= 7);
+    return; // the reader refuses it
   }
   auto word = [&](size_t at) { return swap ? BigEndian32(p + at) : LittleEndian32(p + at); };
   auto half = [&](size_t at) {
@@ -1137,18 +1143,12 @@ CheckNiftiSform(const std::string & path, bool decompose)
     const auto * p = reinterpret_cast<const unsigned char *>(h.data());
     // the byte order as the NIfTI library tells it: from dim[0] (1..7), from sizeof_hdr only when dim[0] is 0 (it
     // reads headers whose sizeof_hdr is wrong)
-    const int16_t dim0 = static_cast<int16_t>(p[40] | (p[41] << 8)),
-                  swapped = static_cast<int16_t>((p[40] << 8) | p[41]);
     bool swap = false;
-    if (dim0 != 0)
+    if (p[40] != 0 || p[41] != 0)
     {
-      if (dim0 < 1 || dim0 > 7)
+      if (!Nifti1SwapFromDim0(p, swap))
       {
-        if (swapped < 1 || swapped > 7)
-        {
-          return; // the reader refuses it
-        }
-        swap = true;
+        return; // the reader refuses it
       }
     }
     else if (LittleEndian32(p) != 348)
@@ -1170,7 +1170,7 @@ CheckNiftiSform(const std::string & path, bool decompose)
     };
     // the voxel sizes of the image's axes (pixdim[1..3]): the NIfTI library puts 1 in place of a NaN or infinite one,
     // so a corrupt header was read as a 1 mm grid without a word
-    const int16_t axes = std::min<int16_t>(swap ? swapped : dim0, 3);
+    const int16_t axes = std::min<int16_t>(halfAt(40), 3);
     for (int16_t i = 1; i <= axes; ++i)
     {
       const float v = floatAt(76 + 4 * static_cast<size_t>(i));
@@ -1209,9 +1209,7 @@ CheckNiftiSform(const std::string & path, bool decompose)
     std::array<float, 12> srow;
     for (unsigned int i = 0; i < 12; ++i)
     {
-      const unsigned char * at = p + 280 + 4 * i;
-      const uint32_t        bits = swap ? BigEndian32(at) : LittleEndian32(at);
-      std::memcpy(&srow[i], &bits, sizeof(float));
+      srow[i] = floatAt(280 + 4 * i);
       if (!std::isfinite(srow[i]))
       {
         std::ostringstream what;

@@ -843,10 +843,11 @@ Run(const Options & opt)
     throw UsageError("the moving image does not overlap the fixed image in physical space: check their origins and "
                      "directions (e.g. one of them flipped, LPS against RAS)");
   }
+  // the share of the fixed image the moving image covers, in words ("less than 1" or a whole percentage)
+  const std::string share =
+    movingOverlap < 0.01 ? std::string("less than 1") : std::to_string(std::lround(100.0 * movingOverlap));
   if (movingOverlap < 0.5)
   {
-    const std::string share =
-      movingOverlap < 0.01 ? std::string("less than 1") : std::to_string(std::lround(100.0 * movingOverlap));
     if (initialField)
     {
       std::cout << "note: --initial-transform maps only " << share
@@ -942,9 +943,7 @@ Run(const Options & opt)
       {
         // the image as read is not constant: the part of it that lies on the fixed grid is (it named the image)
         message << "the moving image has constant intensity " << range.first
-                << " where it lies on the fixed image's grid (it covers "
-                << (movingOverlap < 0.01 ? std::string("less than 1")
-                                         : std::to_string(std::lround(100.0 * movingOverlap)))
+                << " where it lies on the fixed image's grid (it covers " << share
                 << " % of it): nothing to register; check the images' origins, spacings and directions";
       }
       else
