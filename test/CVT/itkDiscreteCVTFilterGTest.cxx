@@ -63,6 +63,7 @@ TEST(DiscreteCVTFilter, BasicObjectMethodsAndPrintCoverEveryMember)
                                               "BlockSize",
                                               "Epsilon",
                                               "MaximumNumberOfSweeps",
+                                              "SwapOptimization",
                                               "Backend",
                                               "BackendUsed",
                                               "InitialEnergy",
@@ -80,6 +81,10 @@ TEST(DiscreteCVTFilter, SetGetRoundTripsAndClamps)
   DMR_EXPECT_SET_GET(filter, BlockSize, 3u);
   DMR_EXPECT_SET_GET(filter, Epsilon, 0.01);
   DMR_EXPECT_SET_GET(filter, MaximumNumberOfSweeps, itk::SizeValueType{ 17 });
+  EXPECT_TRUE(filter->GetSwapOptimization());
+  DMR_EXPECT_SET_GET(filter, SwapOptimization, false);
+  filter->SwapOptimizationOn();
+  EXPECT_TRUE(filter->GetSwapOptimization());
   DMR_EXPECT_SET_GET(filter, Backend, FilterType::BackendEnum::CPU);
   DMR_EXPECT_SET_GET(filter, Backend, FilterType::BackendEnum::Auto);
   filter->SetNumberOfCells(1);
@@ -307,6 +312,37 @@ TEST(DiscreteCVTFilter, WarmStartFromItsOwnOutputDoesNotRaiseEnergy)
   EXPECT_EQ(again->GetNumberOfSwaps(), 0u);
   EXPECT_NEAR(again->GetEnergy(), warm->GetEnergy(), 1e-9 * warm->GetEnergy());
   EXPECT_EQ(LabelsOf(again->GetOutput()), LabelsOf(converged));
+}
+
+// SwapOptimization off: the output is the contraction's tessellation (the CUDA registration contracts through the
+// filter and sweeps on its own device optimiser); the optimised filter starts from it and lowers the energy.
+TEST(DiscreteCVTFilter, WithoutSwapOptimizationTheOutputIsTheContraction)
+{
+  auto density = MakeDensity(11u);
+  auto contraction = FilterType::New();
+  contraction->SetInput(density);
+  contraction->SetNumberOfCells(14);
+  contraction->SwapOptimizationOff();
+  contraction->Update();
+  EXPECT_EQ(contraction->GetNumberOfSweeps(), 0u);
+  EXPECT_EQ(contraction->GetNumberOfSwaps(), 0u);
+  EXPECT_EQ(contraction->GetEnergy(), contraction->GetInitialEnergy());
+
+  const auto               grid = itk::dmr::Grid<2>::FromImage(density);
+  itk::dmr::DiscreteCVT<2> core;
+  core.SetDensity(grid, density->GetBufferPointer(), nullptr);
+  core.ContractionInitialize(14, contraction->GetBlockSize());
+  EXPECT_EQ(LabelsOf(contraction->GetOutput()), core.GetLabels());
+  EXPECT_EQ(contraction->GetCore().GetCentroids(), core.GetCentroids());
+  EXPECT_EQ(contraction->GetEnergy(), core.GetEnergy());
+
+  auto optimised = FilterType::New();
+  optimised->SetInput(density);
+  optimised->SetNumberOfCells(14);
+  optimised->Update();
+  EXPECT_EQ(optimised->GetInitialEnergy(), contraction->GetEnergy());
+  EXPECT_LT(optimised->GetEnergy(), contraction->GetEnergy());
+  EXPECT_GT(optimised->GetNumberOfSwaps(), 0u);
 }
 
 TEST(DiscreteCVTFilter, RepeatedRunsGiveIdenticalLabels)

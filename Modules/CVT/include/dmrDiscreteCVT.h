@@ -606,6 +606,23 @@ public:
     RecomputeStatistics(numberOfCells);
   }
 
+  /** Takes a state carried on elsewhere (the GPU optimiser's, which updates the masses and centroids with this
+   * class's formulas in its order): labels 0..numberOfCells-1 with their masses, centroids (grid frame, D
+   * interleaved) and energy, kept as given. SetLabels would sum them again from the pixels, which rounds differently
+   * from the incremental updates of the sweeps. */
+  void
+  SetState(const LabelType * labels,
+           size_t            numberOfCells,
+           const double *    masses,
+           const double *    centroids,
+           double            energy)
+  {
+    std::copy(labels, labels + m_Grid.numberOfPixels, m_Labels.begin());
+    m_Mass.assign(masses, masses + numberOfCells);
+    m_Centroid.assign(centroids, centroids + numberOfCells * D);
+    m_Energy = energy;
+  }
+
   /** Masses, centroids and energy from scratch (per-chunk sums combined in chunk order). */
   void
   RecomputeStatistics(size_t numberOfCells)

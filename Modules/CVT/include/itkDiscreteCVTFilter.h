@@ -86,6 +86,11 @@ public:
   /** Safety cap on the number of sweeps of one update. */
   itkSetClampMacro(MaximumNumberOfSweeps, SizeValueType, 1, NumericTraits<SizeValueType>::max());
   itkGetConstMacro(MaximumNumberOfSweeps, SizeValueType);
+  /** Whether the swap optimisation runs (default on). Off: the output is the tessellation it starts from (the
+   * contraction's, or the initial labels), e.g. for a caller that optimises on a device optimiser of its own. */
+  itkSetMacro(SwapOptimization, bool);
+  itkGetConstMacro(SwapOptimization, bool);
+  itkBooleanMacro(SwapOptimization);
   itkSetEnumMacro(Backend, BackendEnum);
   itkGetEnumMacro(Backend, BackendEnum);
   itkGetConstMacro(BackendUsed, BackendEnum);
@@ -103,8 +108,8 @@ public:
   SitesType *
   GetSites();
 
-  /** The CPU core of the last update: masses and centroids in the grid frame (on the CUDA back-end it takes the
-   * optimised labels and recomputes them). */
+  /** The CPU core of the last update: labels, masses and centroids in the grid frame (on the CUDA back-end it takes
+   * the GPU's state, which equals the CPU back-end's bit for bit). */
   const CoreType &
   GetCore() const
   {
@@ -137,7 +142,8 @@ protected:
   MakeOutput(DataObjectPointerArraySizeType idx) override;
 
 private:
-  /** The swap optimisation on the GPU, from the core's labels; the core then takes the optimised labels. */
+  /** The swap optimisation on the GPU, from the core's labels; the core then takes the GPU's labels, masses,
+   * centroids and energy. */
   typename CoreType::OptimizeResult
   OptimizeOnDevice(const dmr::Grid<ImageDimension> & grid);
 
@@ -145,6 +151,7 @@ private:
   unsigned int                                 m_BlockSize{ ImageDimension == 2 ? 1u : 4u };
   double                                       m_Epsilon{ 0.0 };
   SizeValueType                                m_MaximumNumberOfSweeps{ 1000 };
+  bool                                         m_SwapOptimization{ true };
   BackendEnum                                  m_Backend{ BackendEnum::Auto };
   BackendEnum                                  m_BackendUsed{ BackendEnum::CPU };
   double                                       m_InitialEnergy{ 0.0 };

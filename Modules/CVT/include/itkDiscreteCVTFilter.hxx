@@ -226,8 +226,13 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
   t0 = Clock::now();
   stageStart = 1.0f / 3.0f;
   m_InitialEnergy = m_Core.GetEnergy();
-  const auto result = m_BackendUsed == BackendEnum::CUDA ? this->OptimizeOnDevice(grid)
-                                                         : m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
+  typename CoreType::OptimizeResult result;
+  result.energyBefore = result.energyAfter = m_Core.GetEnergy();
+  if (m_SwapOptimization)
+  {
+    result = m_BackendUsed == BackendEnum::CUDA ? this->OptimizeOnDevice(grid)
+                                                : m_Core.Optimize(m_Epsilon, m_MaximumNumberOfSweeps);
+  }
   m_OptimizationTime = std::chrono::duration<double>(Clock::now() - t0).count();
   m_Energy = result.energyAfter;
   m_NumberOfSweeps = result.sweeps;
@@ -281,10 +286,13 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::OptimizeOnDevice(const dmr::Grid<
   check(gpu.SetLabels(m_Core.GetLabels().data(), numberOfCells, false));
   dmr::cuda::CVTSwapResult result;
   check(gpu.Optimize(m_Epsilon, m_MaximumNumberOfSweeps, result));
-  // the core takes the optimised labels, so GetCore() and the sites describe this update on both back-ends
+  // the core takes the GPU's state, so GetCore() and the sites describe this update on both back-ends, bit for bit
+  // alike (summing the masses and centroids again from the labels would round differently from the sweeps' updates)
   std::vector<int32_t> labels(grid.numberOfPixels);
+  std::vector<double>  masses, centroids;
   check(gpu.DownloadLabels(labels.data()));
-  m_Core.SetLabels(labels.data(), numberOfCells);
+  check(gpu.GetCells(masses, centroids));
+  m_Core.SetState(labels.data(), numberOfCells, masses.data(), centroids.data(), gpu.Energy());
   return { result.sweeps, result.swaps, result.rejectedBatches, result.energyBefore, result.energyAfter };
 }
 
@@ -297,6 +305,7 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::PrintSelf(std::ostream & os, Inde
   os << indent << "BlockSize: " << m_BlockSize << std::endl;
   os << indent << "Epsilon: " << m_Epsilon << std::endl;
   os << indent << "MaximumNumberOfSweeps: " << m_MaximumNumberOfSweeps << std::endl;
+  os << indent << "SwapOptimization: " << m_SwapOptimization << std::endl;
   os << indent << "Backend: " << m_Backend << std::endl;
   os << indent << "BackendUsed: " << m_BackendUsed << std::endl;
   os << indent << "InitialEnergy: " << m_InitialEnergy << std::endl;
