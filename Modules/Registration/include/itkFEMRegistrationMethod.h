@@ -41,7 +41,8 @@ namespace itk
  * MSSD(T, S o W) + beta R(W) (paper Eq. 1, 3) with R the linear-elastic energy. Each iteration k (paper 3, 4.7):
  *  1. DensityFieldFilter: force f (Eq. 5) of T vs S o W over the pyramid and density d = |f|^2 + alpha (Eq. 9);
  *  2. mesh: Dynamic mode rebuilds it from d: DiscreteCVTFilter (contraction at k = 1, then warm-started swaps) and
- *     DualMeshFilter; Regular and Static modes keep one mesh;
+ *     DualMeshFilter's construction (dmr::BuildDualMesh, fed the CVT's sites in the grid frame; the CUDA path sweeps
+ *     on the device from the same contraction and builds the same mesh); Regular and Static modes keep one mesh;
  *  3. barycentric coordinates of every pixel; nodal forces f_a = sum_x phi_a(x) f(x) dV;
  *  4. LinearElasticFEMSolver: K u = f / beta with the boundary nodes fixed (Eq. 7); beta is set at k = 1 so that
  *     beta R / D = EnergyRatio (paper 5.1: 0.02). With u = K^-1 f / beta, R = f^T K^-1 f / (2 beta^2), hence
@@ -458,7 +459,7 @@ private:
   typename LabelImageType::Pointer        m_Labels;
   typename DisplacementFieldType::Pointer m_InverseDisplacementField;
   SimplexMeshType                         m_StaticSimplexMesh;
-  SimplexMeshType                         m_DynamicSimplexMesh; // the CUDA path builds the dual mesh itself
+  SimplexMeshType                         m_DynamicSimplexMesh; // the current dual mesh (Dynamic mode)
   const SimplexMeshType *                 m_CurrentMesh{ nullptr };
   typename MeshType::Pointer              m_CurrentItkMesh;
   size_t                                  m_CurrentMeshVersion{ 0 };

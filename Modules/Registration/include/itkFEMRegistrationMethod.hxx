@@ -404,19 +404,24 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
       m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
       record.sweeps = m_CVTFilter->GetNumberOfSweeps();
-      // take the labels and sites out of the CVT pipeline so the dual mesh update cannot re-run the CVT
+      // take the labels out of the CVT pipeline (the next iteration's warm start)
       typename LabelImageType::Pointer labels = m_CVTFilter->GetOutput();
       labels->DisconnectPipeline();
       m_Labels = labels;
-      auto sites = CVTFilterType::SitesType::New();
-      sites->SetPoints(m_CVTFilter->GetSites()->GetPoints());
 
+      // the dual mesh from the labels and the core's sites in the grid frame, as the CUDA path builds it: the sites
+      // as physical points (DualMeshFilter's input) would come back from the round trip through origin, spacing and
+      // direction rounded in the last bit, and the 3D tetrahedralization of near-degenerate node sets follows that bit
       t0 = Clock::now();
-      m_DualMeshFilter->SetInput(m_Labels);
-      m_DualMeshFilter->SetSites(sites);
-      m_DualMeshFilter->Modified();
-      m_DualMeshFilter->Update();
-      m_CurrentMesh = &m_DualMeshFilter->GetSimplexMesh();
+      const dmr::LabelSummary summary =
+        dmr::SummarizeLabels<D>(grid, m_Labels->GetBufferPointer(), m_NumberOfNodes, threader);
+      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(grid,
+                                                   summary,
+                                                   m_CVTFilter->GetCore().GetCentroids().data(),
+                                                   m_DualMeshFilter->GetSnapToBoxEdges(),
+                                                   nullptr,
+                                                   threader);
+      m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
 
@@ -565,7 +570,9 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_CVTFilter->SetEpsilon(m_CVTEpsilon);
   m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
   m_CVTFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
-  m_CVTFilter->SetBackend(cuda ? m_Backend : BackendEnum::CPU);
+  // the CUDA path uses the filter for the contraction only and sweeps on its own device optimiser
+  m_CVTFilter->SetBackend(BackendEnum::CPU);
+  m_CVTFilter->SetSwapOptimization(!cuda);
   m_Solver->SetLambda(m_Lambda);
   m_Solver->SetMu(m_Mu);
   m_Solver->SetTolerance(m_SolverTolerance);
@@ -1103,10 +1110,12 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     if (m_MeshMode == MeshModeEnum::Dynamic)
     {
       const bool reinitialize = m_ReinitializationInterval > 0 && it > 1 && (it - 1) % m_ReinitializationInterval == 0;
+      t0 = Clock::now();
       if (it == 1 || reinitialize)
       {
-        // initial tessellation (contraction) on the CPU: the one full-volume download of the density
-        t0 = Clock::now();
+        // initial tessellation (contraction) on the CPU: the one full-volume download of the density; the filter
+        // only contracts (SwapOptimization off), the swaps run on this run's device optimiser from the contraction's
+        // labels, as the CPU path's sweeps run from the contraction's state (so both update the same sums)
         if (density.IsNull())
         {
           density = DensityImageType::New();
@@ -1118,29 +1127,28 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         density->Modified();
         m_CVTFilter->SetInput(density);
         m_CVTFilter->SetInitialLabels(nullptr);
-        m_CVTFilter->Update(); // contraction on the CPU, its swap optimisation on the GPU (Backend Auto/CUDA)
+        m_CVTFilter->Update();
         m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
-        m_Timing.tessellationOptimization += m_CVTFilter->GetOptimizationTime();
-        record.sweeps = m_CVTFilter->GetNumberOfSweeps();
         const auto * labels = m_CVTFilter->GetOutput();
         dmr::ThrowOnError(cvt.SetGrid(D, grid.size.data(), grid.spacing.data()), "CVT grid");
         dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
         dmr::ThrowOnError(cvt.SetLabels(labels->GetBufferPointer(), m_NumberOfNodes, false), "CVT labels");
         m_CVTFilter->GetOutput()->ReleaseData();
         density = nullptr;
-        m_Timing.tessellationOptimization += std::max(
-          0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime() - m_CVTFilter->GetOptimizationTime());
+        m_Timing.tessellationOptimization +=
+          std::max(0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime());
       }
       else
       {
-        t0 = Clock::now();
-        dmr::cuda::CVTSwapResult result;
         dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
         dmr::ThrowOnError(cvt.KeepLabels(m_NumberOfNodes), "CVT warm start");
-        dmr::ThrowOnError(cvt.Optimize(m_CVTEpsilon, m_MaximumNumberOfSweeps, result), "CVT optimisation");
-        record.sweeps = result.sweeps;
         m_Timing.tessellationOptimization += seconds(t0, Clock::now());
       }
+      t0 = Clock::now();
+      dmr::cuda::CVTSwapResult result;
+      dmr::ThrowOnError(cvt.Optimize(m_CVTEpsilon, m_MaximumNumberOfSweeps, result), "CVT optimisation");
+      record.sweeps = result.sweeps;
+      m_Timing.tessellationOptimization += seconds(t0, Clock::now());
 
       t0 = Clock::now();
       std::vector<double> masses, centroids;
