@@ -63,16 +63,25 @@ def write_mha3(path, n, data, sp):
                  % (n[0], n[1], n[2], sp[0], sp[1], sp[2])).encode())
         f.write(struct.pack('<%df' % len(data), *data))
 N3=(48,44,40); sp3=(1.0,1.0,1.2)
-def volume(ins):
+def volume(ins, n=N3, sp=sp3):
     out=[]
-    for z in range(N3[2]):
-        for y in range(N3[1]):
-            for x in range(N3[0]):
+    for z in range(n[2]):
+        for y in range(n[1]):
+            for x in range(n[0]):
                 c=0
                 for s in ((0.25,0.25,0.25),(0.75,0.25,0.75),(0.25,0.75,0.75),(0.75,0.75,0.25)):
-                    if ins((x+s[0]-0.5)*sp3[0],(y+s[1]-0.5)*sp3[1],(z+s[2]-0.5)*sp3[2]): c+=1
+                    if ins((x+s[0]-0.5)*sp[0],(y+s[1]-0.5)*sp[1],(z+s[2]-0.5)*sp[2]): c+=1
                 out.append(100.0*c/4)
     return out
 os.makedirs(f"{d}/sphere3d",exist_ok=True)
 write_mha3(f"{d}/sphere3d/moving.mha",N3,volume(lambda x,y,z:(x-24)**2+(y-22)**2+(z-24)**2<=12**2),sp3)
 write_mha3(f"{d}/sphere3d/fixed.mha",N3,volume(lambda x,y,z:((x-25)/16)**2+((y-21)/10)**2+((z-24)/13)**2<=1),sp3)
+# 3D circle-to-leaf: 96 x 48 x 48 voxels of 1 mm; a sphere of radius 12 at (64, 24, 24) (moving) to the same hemisphere
+# for x >= 64 and a half-ellipsoid of semi-axes 48 x 12 x 12 towards -x (fixed): the sphere must stretch fourfold
+NL=(96,48,48); spL=(1.0,1.0,1.0)
+def leaf3d(x,y,z):
+    if x>=64: return (x-64)**2+(y-24)**2+(z-24)**2<=144
+    return ((x-64)/48)**2+((y-24)/12)**2+((z-24)/12)**2<=1
+os.makedirs(f"{d}/leaf3d",exist_ok=True)
+write_mha3(f"{d}/leaf3d/moving.mha",NL,volume(lambda x,y,z:(x-64)**2+(y-24)**2+(z-24)**2<=144,NL,spL),spL)
+write_mha3(f"{d}/leaf3d/fixed.mha",NL,volume(leaf3d,NL,spL),spL)

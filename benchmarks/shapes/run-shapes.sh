@@ -6,11 +6,12 @@ set -u -o pipefail
 B=$1 O=$2; shift 2
 here=$(cd "$(dirname "$0")" && pwd)
 python3 "$here/make-shapes.py" "$O/data" || exit 1
-for c in star cshape ellipse aniso blobs sphere3d; do
-  threshold=127.5; [ "$c" = sphere3d ] && threshold=50
+for c in star cshape ellipse aniso blobs sphere3d leaf3d; do
+  threed=0; case $c in sphere3d | leaf3d) threed=1 ;; esac
+  threshold=127.5; [ $threed = 1 ] && threshold=50
   for m in dynamic regular; do
     for it in 100 400; do
-      [ "$c" = sphere3d ] && [ "$it" = 400 ] && continue
+      [ $threed = 1 ] && [ "$it" = 400 ] && continue
       o=$O/$c-$m-$it
       "$B/itkDynamicMeshRegistration" --fixed "$O/data/$c/fixed.mha" --moving "$O/data/$c/moving.mha" --output-dir "$o" \
         --iterations "$it" --mesh "$m" "$@" >"$o.log" 2>&1
