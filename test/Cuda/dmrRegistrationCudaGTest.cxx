@@ -364,6 +364,35 @@ FirstMeshIsTheCPUs(unsigned int nodes, unsigned int n)
             << " elements on both back-ends" << std::endl;
 }
 
+/** A run that contracts afresh every few iterations (ReinitializationInterval) agrees with the CPU's: the CUDA path
+ * contracts through the filter and sweeps on its device optimiser from that state at every reinitialization too. */
+template <unsigned int D>
+void
+ReinitializedRunMatchesCPU(unsigned int nodes, unsigned int n)
+{
+  auto cpu = Registration<D>(Backend::CPU, MeshMode::Dynamic, nodes, 10, n);
+  auto gpu = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, 10, n);
+  cpu->SetReinitializationInterval(4); // fresh contractions at iterations 5 and 9
+  gpu->SetReinitializationInterval(4);
+  cpu->Update();
+  gpu->Update();
+  ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
+  ASSERT_EQ(gpu->GetHistory().size(), cpu->GetHistory().size());
+  for (size_t i = 0; i < cpu->GetHistory().size(); ++i)
+  {
+    EXPECT_EQ(gpu->GetHistory()[i].sweeps, cpu->GetHistory()[i].sweeps) << "iteration " << i + 1;
+    EXPECT_EQ(gpu->GetHistory()[i].nodes, cpu->GetHistory()[i].nodes) << "iteration " << i + 1;
+  }
+  // the fresh contractions change the run (against the same run warm-started throughout)
+  auto plain = Registration<D>(Backend::CPU, MeshMode::Dynamic, nodes, 10, n);
+  plain->Update();
+  EXPECT_GT(MaxDifferenceInVoxels(cpu->GetDisplacementField(), plain->GetDisplacementField()), 0.0);
+  const double difference = MaxDifferenceInVoxels(cpu->GetDisplacementField(), gpu->GetDisplacementField());
+  std::cout << D << "D, contractions at iterations 1, 5 and 9: CPU/GPU max difference " << difference << " voxel"
+            << std::endl;
+  EXPECT_LT(difference, 0.05);
+}
+
 /** The pieces one by one on a mesh from the CPU run: force (vs DensityFieldFilter), owner (vs BarycentricMap,
  * identical), nodal forces (vs BarycentricMap::Gather on the same force, identical). */
 template <unsigned int D>
@@ -720,6 +749,18 @@ TEST(CudaRegistration, FirstMeshIsTheCPUs3D)
 {
   DMR_REQUIRE_DEVICE();
   FirstMeshIsTheCPUs<3>(150, 40);
+}
+
+TEST(CudaRegistration, ReinitializedRunMatchesCPU2D)
+{
+  DMR_REQUIRE_DEVICE();
+  ReinitializedRunMatchesCPU<2>(40, 96);
+}
+
+TEST(CudaRegistration, ReinitializedRunMatchesCPU3D)
+{
+  DMR_REQUIRE_DEVICE();
+  ReinitializedRunMatchesCPU<3>(150, 40);
 }
 
 TEST(CudaRegistration, StagesAgreeWithCPU2D)
