@@ -19,6 +19,7 @@
 #include "dmrTestHelpers.h"
 #include "itkMultiThreaderBase.h"
 #include "gtest/gtest.h"
+#include <cmath>
 #include <iostream>
 #include <limits>
 
@@ -263,7 +264,7 @@ TEST(DiscreteCVT, TooManyOrZeroCellsThrow)
   EXPECT_TRUE(LabelsAreCompact(cvt.GetLabels(), 12));
 }
 
-TEST(DiscreteCVT, SetLabelsRejectsOutOfRangeAndEmptyCells)
+TEST(DiscreteCVT, SetLabelsAndSetStateRejectOutOfRangeAndEmptyCells)
 {
   const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ 4, 3 }, std::array<double, 2>{ 1.0, 1.0 });
   const std::vector<float> density(grid.numberOfPixels, 1.0f);
@@ -276,6 +277,20 @@ TEST(DiscreteCVT, SetLabelsRejectsOutOfRangeAndEmptyCells)
   labels[5] = 1;
   EXPECT_NO_THROW(cvt.SetLabels(labels.data(), 2));
   EXPECT_EQ(cvt.GetNumberOfCells(), 2u);
+
+  // SetState checks what it takes as given, and a refused state leaves the current one in place
+  const std::vector<double> masses{ 11.0, 1.0 }, centroids{ 1.5, 1.0, 1.0, 1.0 };
+  const auto                state = cvt.GetCentroids();
+  labels[5] = 2;
+  EXPECT_THROW(cvt.SetState(labels.data(), 2, masses.data(), centroids.data(), 1.0), itk::ExceptionObject);
+  labels[5] = 1;
+  const std::vector<double> zeroMass{ 11.0, 0.0 }, nanCentroid{ 1.5, 1.0, std::nan(""), 1.0 };
+  EXPECT_THROW(cvt.SetState(labels.data(), 2, zeroMass.data(), centroids.data(), 1.0), itk::ExceptionObject);
+  EXPECT_THROW(cvt.SetState(labels.data(), 2, masses.data(), nanCentroid.data(), 1.0), itk::ExceptionObject);
+  EXPECT_THROW(cvt.SetState(labels.data(), 2, masses.data(), centroids.data(), std::nan("")), itk::ExceptionObject);
+  EXPECT_EQ(cvt.GetCentroids(), state);
+  EXPECT_NO_THROW(cvt.SetState(labels.data(), 2, masses.data(), centroids.data(), 1.0));
+  EXPECT_EQ(cvt.GetCentroids(), centroids);
 }
 
 TEST(DiscreteCVT, SweepsNeverRaiseEnergyAndKeepCellsConnected)

@@ -609,7 +609,8 @@ public:
   /** Takes a state carried on elsewhere (the GPU optimiser's, which updates the masses and centroids with this
    * class's formulas in its order): labels 0..numberOfCells-1 with their masses, centroids (grid frame, D
    * interleaved) and energy, kept as given. SetLabels would sum them again from the pixels, which rounds differently
-   * from the incremental updates of the sweeps. */
+   * from the incremental updates of the sweeps. Throws, keeping the current state, for a label outside
+   * [0, numberOfCells), a mass that is not positive and finite or a centroid or energy that is not finite. */
   void
   SetState(const LabelType * labels,
            size_t            numberOfCells,
@@ -617,6 +618,30 @@ public:
            const double *    centroids,
            double            energy)
   {
+    for (size_t p = 0; p < m_Grid.numberOfPixels; ++p)
+    {
+      if (labels[p] < 0 || static_cast<size_t>(labels[p]) >= numberOfCells)
+      {
+        ThrowLabelOutsideRange(labels[p], p, numberOfCells);
+      }
+    }
+    for (size_t c = 0; c < numberOfCells; ++c)
+    {
+      bool finite = masses[c] > 0.0 && std::isfinite(masses[c]);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        finite = finite && std::isfinite(centroids[c * D + k]);
+      }
+      if (!finite)
+      {
+        itkGenericExceptionMacro("DiscreteCVT: cell " << c << " of the given state has mass " << masses[c]
+                                                      << " or a centroid that is not finite");
+      }
+    }
+    if (!std::isfinite(energy))
+    {
+      itkGenericExceptionMacro("DiscreteCVT: the given state's energy " << energy << " is not finite");
+    }
     std::copy(labels, labels + m_Grid.numberOfPixels, m_Labels.begin());
     m_Mass.assign(masses, masses + numberOfCells);
     m_Centroid.assign(centroids, centroids + numberOfCells * D);
