@@ -107,6 +107,7 @@ struct Options
   std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
   bool        landmarksInMM{ false };
   bool        inverse{ false };
+  bool        gpuOrderSolve{ false };
   bool        window{ false };
   double      windowLow{ 0.0 }, windowHigh{ 0.0 };
 };
@@ -135,6 +136,8 @@ const char * const Usage =
   "                         1e-16 to 1e-2)\n"
   "  --direct-solve-max-dofs N  solve elastic systems of at most N free unknowns on the CPU exactly (factorised)\n"
   "                         instead of by conjugate gradients (default 300; 0: always conjugate gradients)\n"
+  "  --gpu-order-solve      solve the larger elastic systems on the CPU by the GPU's conjugate gradients, in its\n"
+  "                         arithmetic order: a cpu run then takes the cuda run's solves bit for bit (slower)\n"
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
@@ -280,6 +283,11 @@ ParseArguments(int argc, char * argv[])
     if (a == "--landmarks-in-mm")
     {
       opt.landmarksInMM = true;
+      continue;
+    }
+    if (a == "--gpu-order-solve")
+    {
+      opt.gpuOrderSolve = true;
       continue;
     }
     if (a == "--inverse")
@@ -1012,6 +1020,7 @@ Run(const Options & opt)
   method->SetInitialDisplacementField(initialField);
   method->SetInitialInverseDisplacementField(initialInverseField);
   method->SetComputeInverse(opt.inverse);
+  method->SetGPUOrderSolve(opt.gpuOrderSolve);
   method->SetNumberOfNodes(static_cast<itk::SizeValueType>(nodes));
   method->SetNumberOfIterations(static_cast<unsigned int>(opt.iterations));
   method->SetNumberOfLevels(static_cast<unsigned int>(opt.levels));

@@ -20,6 +20,7 @@
 // rotated geometry) must agree. Every test skips without a CUDA device.
 #include "itkFEMRegistrationMethod.h"
 #include "dmrCudaBackend.h"
+#include "dmrElasticCG.h"
 #include "dmrErrorStatistics.h"
 #include "dmrFieldImage.h"
 #include "dmrRegistrationBackend.h"
@@ -289,6 +290,34 @@ ElasticSolveAgrees(itk::dmr::cuda::RegistrationContext & context, const itk::dmr
               static_cast<double>(solver->GetLastIterations() + 1),
               std::max(3.0, 0.1 * static_cast<double>(solver->GetLastIterations())));
 
+  // the CPU's GPU-order CG (dmr::ElasticCG, LinearElasticFEMSolver::GPUOrderSolve) takes the device's products: the
+  // same iterate, bit for bit, after the same number of products, converged (at two tolerances) or stopped early
+  for (const double tolerance : { 1e-12, 1e-6 })
+  {
+    for (const size_t limit : { size_t{ 7 }, 4 * ndof + 1000 })
+    {
+      std::vector<double> uDevice(ndof, 3.0), uOrdered(ndof, 5.0);
+      size_t              deviceProducts = 0, orderedProducts = 0;
+      bool                deviceConverged = false;
+      ASSERT_TRUE(
+        context.SolveElasticity(f.data(), uDevice.data(), tolerance, limit, deviceProducts, deviceConverged).Ok());
+      itk::dmr::ElasticCG<D> ordered;
+      ordered.SetSystem(mesh, lambda, mu);
+      const bool orderedConverged = ordered.Solve(f.data(), uOrdered.data(), tolerance, limit, orderedProducts);
+      EXPECT_EQ(orderedProducts, deviceProducts) << "tolerance " << tolerance << ", limit " << limit;
+      EXPECT_EQ(orderedConverged, deviceConverged) << "tolerance " << tolerance << ", limit " << limit;
+      EXPECT_EQ(uOrdered, uDevice) << "tolerance " << tolerance << ", limit " << limit;
+    }
+  }
+  solver->SetGPUOrderSolve(true);
+  solver->SetTolerance(1e-6);
+  solver->SetMesh(mesh);
+  std::vector<double> uSolver, uDevice(ndof);
+  solver->Solve(f, uSolver);
+  ASSERT_TRUE(context.SolveElasticity(f.data(), uDevice.data(), 1e-6, 4 * ndof + 1000, iterations, converged).Ok());
+  EXPECT_EQ(uSolver, uDevice) << "LinearElasticFEMSolver with GPUOrderSolve";
+  EXPECT_EQ(static_cast<size_t>(solver->GetLastIterations()), iterations);
+
   // the one-launch (cooperative) CG loop and the separate launches take the same products: the same iterate, bit for
   // bit, after the same number of products, converged or stopped early
   for (const size_t limit : { size_t{ 7 }, 4 * ndof + 1000 })
@@ -391,6 +420,36 @@ ReinitializedRunMatchesCPU(unsigned int nodes, unsigned int n)
   std::cout << D << "D, contractions at iterations 1, 5 and 9: CPU/GPU max difference " << difference << " voxel"
             << std::endl;
   EXPECT_LT(difference, 0.05);
+}
+
+/** Every elastic system solved by CG on both back-ends, the CPU's in the GPU's order (GPUOrderSolve): the runs take
+ * the same solves, so their fields agree far more closely than two CGs at the default tolerance would (what is left is
+ * the last bits of the MSSD sums in beta). */
+template <unsigned int D>
+void
+GPUOrderCPURunMatchesDeviceSolves(unsigned int nodes, unsigned int iterations, unsigned int n)
+{
+  auto cpu = Registration<D>(Backend::CPU, MeshMode::Dynamic, nodes, iterations, n);
+  auto gpu = Registration<D>(Backend::CUDA, MeshMode::Dynamic, nodes, iterations, n);
+  cpu->SetDirectSolverMaximumDegreesOfFreedom(0);
+  cpu->SetGPUOrderSolve(true);
+  gpu->SetDirectSolverMaximumDegreesOfFreedom(0);
+  gpu->SetDeviceSolverMinimumDegreesOfFreedom(0);
+  cpu->Update();
+  gpu->Update();
+  ASSERT_EQ(gpu->GetBackendUsed(), Backend::CUDA);
+  ASSERT_EQ(gpu->GetHistory().size(), cpu->GetHistory().size());
+  for (size_t i = 0; i < cpu->GetHistory().size(); ++i)
+  {
+    EXPECT_TRUE(gpu->GetHistory()[i].deviceSolve) << "iteration " << i + 1;
+    EXPECT_FALSE(cpu->GetHistory()[i].directSolve) << "iteration " << i + 1;
+    EXPECT_EQ(gpu->GetHistory()[i].solverIterations, cpu->GetHistory()[i].solverIterations) << "iteration " << i + 1;
+    EXPECT_EQ(gpu->GetHistory()[i].sweeps, cpu->GetHistory()[i].sweeps) << "iteration " << i + 1;
+  }
+  const double difference = MaxDifferenceInVoxels(cpu->GetDisplacementField(), gpu->GetDisplacementField());
+  std::cout << D << "D, every system by CG, the CPU's in the GPU's order: CPU/GPU max difference " << difference
+            << " voxel" << std::endl;
+  EXPECT_LT(difference, 1e-4);
 }
 
 /** The pieces one by one on a mesh from the CPU run: force (vs DensityFieldFilter), owner (vs BarycentricMap,
@@ -761,6 +820,18 @@ TEST(CudaRegistration, ReinitializedRunMatchesCPU3D)
 {
   DMR_REQUIRE_DEVICE();
   ReinitializedRunMatchesCPU<3>(150, 40);
+}
+
+TEST(CudaRegistration, GPUOrderCPURunMatchesDeviceSolves2D)
+{
+  DMR_REQUIRE_DEVICE();
+  GPUOrderCPURunMatchesDeviceSolves<2>(40, 60, 96);
+}
+
+TEST(CudaRegistration, GPUOrderCPURunMatchesDeviceSolves3D)
+{
+  DMR_REQUIRE_DEVICE();
+  GPUOrderCPURunMatchesDeviceSolves<3>(150, 30, 40);
 }
 
 TEST(CudaRegistration, StagesAgreeWithCPU2D)

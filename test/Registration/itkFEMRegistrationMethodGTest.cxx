@@ -93,7 +93,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
                                               "FinalSSD",
                                               "ForceGradient",
                                               "MaximumStepHalvings",
-                                              "ComputeInverse" }));
+                                              "ComputeInverse",
+                                              "GPUOrderSolve" }));
   DMR_EXPECT_SET_GET(method, MaximumStepHalvings, 2u);
   DMR_EXPECT_SET_GET(method, ForceGradient, itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
   DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);
@@ -108,6 +109,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   EXPECT_EQ(method->GetDirectSolverMaximumDegreesOfFreedom(), 300u); // the default
   DMR_EXPECT_SET_GET(method, DirectSolverMaximumDegreesOfFreedom, 40u);
   DMR_EXPECT_SET_GET(method, ComputeInverse, true);
+  EXPECT_FALSE(method->GetGPUOrderSolve()); // the default
+  DMR_EXPECT_SET_GET(method, GPUOrderSolve, true);
   method->SetSolverTolerance(1.0); // clamped to the loosest tolerance allowed
   EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
   method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least

@@ -21,6 +21,7 @@
 #include "itkObject.h"
 #include "itkObjectFactory.h"
 #include "itkMultiThreaderBase.h"
+#include "dmrElasticCG.h"
 #include "dmrSimplexMesh.h"
 #include "itk_eigen.h"
 #include ITK_EIGEN(Sparse)
@@ -42,6 +43,8 @@ namespace itk
  * preconditioner to a relative residual of Tolerance (default 1e-12), warm-started from the previous solution when the
  * system size is unchanged, falling back to the factorisation if CG does not converge. For the 3D meshes of the paper
  * (3000 nodes) CG is about 20x faster than factorising every new mesh, and the dynamic mesh changes every iteration.
+ * With GPUOrderSolve on, the CG is instead dmr::ElasticCG: matrix-free, from u = 0, with the CUDA back-end's
+ * arithmetic in its order, so that a CPU run takes the GPU's iterates bit for bit (2-4x slower on the CPU).
  * A small system costs about the same either way, and the exact solve makes the result a continuous function of the
  * force: a CG stopped at a tolerance jumps by about that tolerance when a rounding difference in its input moves its
  * stopping iteration, and over many iterations of a large deformation such jumps grow into different registrations
@@ -105,6 +108,12 @@ public:
   itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
   /** Whether the current mesh's system is solved by its factorisation (see DirectSolverMaximumDegreesOfFreedom). */
   itkGetConstMacro(Direct, bool);
+  /** Solve the systems above DirectSolverMaximumDegreesOfFreedom by dmr::ElasticCG, the CUDA back-end's CG in its
+   * order (the GPU's iterates bit for bit; slower), instead of CG on the assembled matrix (default off; takes effect
+   * at the next SetMesh). */
+  itkSetMacro(GPUOrderSolve, bool);
+  itkGetConstMacro(GPUOrderSolve, bool);
+  itkBooleanMacro(GPUOrderSolve);
   /** CG iterations of the last Solve(): 0 for a direct solve (the fallback factorisation ran when it equals the
    * limit). */
   itkGetConstMacro(LastIterations, SizeValueType);
@@ -128,6 +137,9 @@ private:
   double                                                           m_Tolerance{ 1e-12 };
   SizeValueType                                                    m_DirectSolverMaximumDegreesOfFreedom{ 300 };
   bool                                                             m_Direct{ false };
+  bool                                                             m_GPUOrderSolve{ false };
+  bool                                                             m_GPUOrderSystem{ false }; // set by SetMesh
+  dmr::ElasticCG<VDimension>                                       m_ElasticCG;
   SparseMatrixType                                                 m_Kf; // reduced to the free degrees of freedom
   std::unique_ptr<ConjugateGradientType>                           m_CG;
   mutable std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;

@@ -220,7 +220,12 @@ LinearElasticFEMSolver<D>::SetMesh(const MeshType & mesh)
       m_Factor.reset();
     }
   }
-  if (nFree > 0 && !m_Direct)
+  m_GPUOrderSystem = nFree > 0 && !m_Direct && m_GPUOrderSolve;
+  if (m_GPUOrderSystem)
+  {
+    m_ElasticCG.SetSystem(mesh, m_Lambda, m_Mu);
+  }
+  else if (nFree > 0 && !m_Direct)
   {
     m_CG->setTolerance(m_Tolerance);
     m_CG->setMaxIterations(std::max<Eigen::Index>(1000, 4 * nFree));
@@ -268,18 +273,40 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
   }
   else
   {
-    // conjugate gradients (diagonal preconditioner), warm-started from the previous solution when the system has the
-    // same size (the dynamic mesh keeps one node per CVT cell, so node a of the next mesh is near node a of this one)
-    if (m_Warm.size() == rhs.size())
+    bool converged = true;
+    if (m_GPUOrderSystem)
     {
-      x = m_CG->solveWithGuess(rhs, m_Warm);
+      // matrix-free CG from u = 0 in the CUDA back-end's order, with the device's product limit
+      std::vector<double> full(nDof);
+      size_t              products = 0;
+      converged = m_ElasticCG.Solve(
+        f.data(), full.data(), m_Tolerance, std::max<size_t>(1000, 4 * static_cast<size_t>(rhs.size())), products);
+      m_LastIterations = static_cast<SizeValueType>(products);
+      x.resize(rhs.size());
+      for (size_t i = 0; i < nDof; ++i)
+      {
+        if (m_FreeIndex[i] >= 0)
+        {
+          x[m_FreeIndex[i]] = full[i];
+        }
+      }
     }
     else
     {
-      x = m_CG->solve(rhs);
+      // conjugate gradients (diagonal preconditioner), warm-started from the previous solution when the system has the
+      // same size (the dynamic mesh keeps one node per CVT cell, so node a of the next mesh is near node a of this one)
+      if (m_Warm.size() == rhs.size())
+      {
+        x = m_CG->solveWithGuess(rhs, m_Warm);
+      }
+      else
+      {
+        x = m_CG->solve(rhs);
+      }
+      m_LastIterations = static_cast<SizeValueType>(m_CG->iterations());
+      converged = m_CG->info() == Eigen::Success;
     }
-    m_LastIterations = static_cast<SizeValueType>(m_CG->iterations());
-    if (m_CG->info() != Eigen::Success)
+    if (!converged)
     {
       // not converged (a very ill-conditioned mesh): the exact sparse factorisation
       if (!m_Factor)
@@ -325,6 +352,7 @@ LinearElasticFEMSolver<D>::PrintSelf(std::ostream & os, Indent indent) const
   os << indent << "Tolerance: " << m_Tolerance << std::endl;
   os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
   os << indent << "Direct: " << (m_Direct ? "true" : "false") << std::endl;
+  os << indent << "GPUOrderSolve: " << (m_GPUOrderSolve ? "true" : "false") << std::endl;
   os << indent << "LastIterations: " << m_LastIterations << std::endl;
 }
 } // namespace itk

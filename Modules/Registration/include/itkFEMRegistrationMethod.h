@@ -234,6 +234,14 @@ public:
    * field; docs/benchmarks.md). 0: always CG. Default 300 (both 2D paper experiments, 142 unknowns, are below it). */
   itkSetMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
   itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
+  /** CPU solves of systems above DirectSolverMaximumDegreesOfFreedom by the CUDA back-end's matrix-free CG with its
+   * arithmetic in its order (LinearElasticFEMSolver::GPUOrderSolve, dmr::ElasticCG) instead of CG on the assembled
+   * matrix: a CPU run then takes the GPU run's solves bit for bit, so the two stay together where the rounding of two
+   * different CGs would tip a CVT swap decision and part them (a large 3D deformation, docs/benchmarks.md). The CPU
+   * solves take 2-4x longer. Default off. */
+  itkSetMacro(GPUOrderSolve, bool);
+  itkGetConstMacro(GPUOrderSolve, bool);
+  itkBooleanMacro(GPUOrderSolve);
   /** CUDA back-end: elastic systems with at least this many free degrees of freedom are solved on the device
    * (matrix-free Jacobi-preconditioned conjugate gradients, RegistrationContext::SolveElasticity, to the CPU solver's
    * tolerance; a solve that does not converge falls back to the CPU solver); smaller ones are assembled and solved on
@@ -441,6 +449,7 @@ private:
   double            m_SolverTolerance{ 1e-6 };
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
   SizeValueType     m_DirectSolverMaximumDegreesOfFreedom{ 300 };
+  bool              m_GPUOrderSolve{ false };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
   bool              m_ComputeInverse{ false };
 

@@ -577,6 +577,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetMu(m_Mu);
   m_Solver->SetTolerance(m_SolverTolerance);
   m_Solver->SetDirectSolverMaximumDegreesOfFreedom(m_DirectSolverMaximumDegreesOfFreedom);
+  m_Solver->SetGPUOrderSolve(m_GPUOrderSolve);
   m_Labels = nullptr;
   m_InverseDisplacementField = nullptr;
 
@@ -1347,6 +1348,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DevicePeakBytes: " << m_DevicePeakBytes << std::endl;
   os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
   os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
+  os << indent << "GPUOrderSolve: " << (m_GPUOrderSolve ? "true" : "false") << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "ComputeInverse: " << m_ComputeInverse << std::endl;

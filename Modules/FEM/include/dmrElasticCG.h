@@ -1,0 +1,391 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrElasticCG_h
+#define dmrElasticCG_h
+
+#include "dmrSimplexMesh.h"
+#include "itkMacro.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+namespace itk
+{
+namespace dmr
+{
+/** Matrix-free Jacobi-preconditioned conjugate gradients for LinearElasticFEMSolver's system, computed with the CUDA
+ * back-end's arithmetic in the CUDA back-end's order (dmrRegistrationBackend.cu: ElementGeometryKernel,
+ * ElasticDiagonalKernel, ElementStresses, NodeApplyBlock, CGStartKernel, CGStepBlock, CGDirection and the fixed
+ * reduction trees of BlockCombine/SumPartials), so that the two back-ends take the same iterates, bit for bit, and stop
+ * after the same product. With different rounding, two CGs stopped at a tolerance differ by about that tolerance, and
+ * over a registration with a large deformation that difference can tip a CVT swap decision and part the runs
+ * (docs/benchmarks.md, "CPU and GPU build the same first mesh").
+ *
+ * K p at node a is sum_e V_e sigma_e g_a with G = sum_b p_b (x) g_b and sigma = lambda tr(G) I + mu (G + G^T): the
+ * element matrix of LinearElasticFEMSolver applied to p. A node's incident elements are summed as one warp of 32 lanes
+ * does it (lane l takes incidences l, l + 32, ... in element order, then a shuffle-down tree); a dot product is summed
+ * per block of 256 values (a tree within each warp of 32, then the 8 warps in order), and the block partials by 256
+ * strided sequential sums and one more block sum. Fixed nodes keep u = 0. Stops when |r|^2 < tolerance^2 |f|^2 (f
+ * zeroed on fixed nodes), Eigen's rule. Needs IEEE double arithmetic without contraction into fused multiply-adds
+ * (ISO C++ mode, as the project compiles; the CUDA code is compiled with --fmad=false). */
+template <unsigned int D>
+class ElasticCG
+{
+public:
+  static constexpr int BlockThreads = 256; // CGThreads of the CUDA back-end
+  static constexpr int Warp = 32;
+
+  /** Element gradients and volumes, the node -> (element, vertex) incidence in element order and the inverse diagonal
+   * of K, from the mesh (kept by pointer) with lambda and mu. */
+  void
+  SetSystem(const SimplexMesh<D> & mesh, double lambda, double mu)
+  {
+    constexpr unsigned int NV = D + 1;
+    m_Mesh = &mesh;
+    m_Lambda = lambda;
+    m_Mu = mu;
+    const size_t nn = mesh.NumberOfNodes(), ne = mesh.elements.size();
+    m_Geometry.assign(ne * Stride, 0.0);
+    for (size_t e = 0; e < ne; ++e)
+    {
+      double   x0[D], inv[D][D];
+      double * g = &m_Geometry[e * Stride];
+      mesh.EdgeMatrix(e, x0, &inv);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        g[k] = 0.0;
+      }
+      for (unsigned int a = 1; a <= D; ++a)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          g[a * D + k] = inv[a - 1][k];
+          g[k] -= g[a * D + k];
+        }
+      }
+      double m[D][D];
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        for (unsigned int c = 0; c < D; ++c)
+        {
+          m[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - mesh.nodes[mesh.elements[e][0] * D + r];
+        }
+      }
+      double det;
+      if constexpr (D == 2)
+      {
+        det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+      }
+      else
+      {
+        det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+              m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+      }
+      g[NV * D] = std::fabs(det) / (D == 2 ? 2.0 : 6.0);
+    }
+    m_Start.assign(nn + 1, 0);
+    for (size_t e = 0; e < ne; ++e)
+    {
+      for (unsigned int v = 0; v < NV; ++v)
+      {
+        ++m_Start[static_cast<size_t>(mesh.elements[e][v]) + 1];
+      }
+    }
+    for (size_t a = 0; a < nn; ++a)
+    {
+      m_Start[a + 1] += m_Start[a];
+    }
+    m_Incidence.resize(ne * NV);
+    std::vector<int64_t> fill(m_Start.begin(), m_Start.end() - 1);
+    for (size_t e = 0; e < ne; ++e)
+    {
+      for (unsigned int v = 0; v < NV; ++v)
+      {
+        m_Incidence[fill[mesh.elements[e][v]]++] = static_cast<int64_t>(e * NV + v);
+      }
+    }
+    m_InverseDiagonal.assign(nn * D, 0.0);
+    for (size_t a = 0; a < nn; ++a)
+    {
+      double d[D] = {};
+      for (int64_t i = m_Start[a]; i < m_Start[a + 1]; ++i)
+      {
+        const double * g = &m_Geometry[static_cast<size_t>(m_Incidence[i] / NV) * Stride];
+        const size_t   slot = static_cast<size_t>(m_Incidence[i] % NV);
+        const double   V = g[NV * D];
+        double         gg = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          gg += g[slot * D + k] * g[slot * D + k];
+        }
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          d[k] += V * ((lambda + mu) * g[slot * D + k] * g[slot * D + k] + mu * gg);
+        }
+      }
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        m_InverseDiagonal[a * D + k] = Fixed(a) ? 0.0 : (d[k] != 0.0 ? 1.0 / d[k] : 1.0);
+      }
+    }
+  }
+
+  /** Solves K u = f (u = 0 on fixed nodes) from u = 0 with at most maximumProducts products of K; iterations is the
+   * number of products taken. Returns whether |r|^2 fell below tolerance^2 |f|^2. */
+  bool
+  Solve(const double * f, double * u, double tolerance, size_t maximumProducts, size_t & iterations) const
+  {
+    if (!m_Mesh)
+    {
+      itkGenericExceptionMacro("ElasticCG: Solve() needs SetSystem() first");
+    }
+    const size_t        nn = m_Mesh->NumberOfNodes(), ndof = nn * D;
+    const size_t        dofBlocks = (ndof + BlockThreads - 1) / BlockThreads;
+    const size_t        nodeBlocks = (nn * Warp + BlockThreads - 1) / BlockThreads;
+    std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), stress(m_Mesh->elements.size() * D * D);
+    std::vector<double> rrPartials(dofBlocks), rzPartials(dofBlocks), pqPartials(nodeBlocks);
+    std::fill(u, u + ndof, 0.0);
+    // CGStartKernel, then the host's sums of its partials
+    for (size_t i = 0; i < ndof; ++i)
+    {
+      r[i] = Fixed(i / D) ? 0.0 : f[i];
+    }
+    StoreResiduals(r, z, rrPartials, rzPartials);
+    p = z;
+    double rhsNorm2 = 0.0, rz = 0.0;
+    for (size_t b = 0; b < dofBlocks; ++b)
+    {
+      rhsNorm2 += rrPartials[b];
+      rz += rzPartials[b];
+    }
+    iterations = 0;
+    if (rhsNorm2 == 0.0)
+    {
+      return true;
+    }
+    const double threshold = std::max(tolerance * tolerance * rhsNorm2, std::numeric_limits<double>::min());
+    double       scalars[2] = { rz, 0.0 }; // r.z by iteration parity
+    for (size_t k = 0; k < maximumProducts; ++k)
+    {
+      const int parity = static_cast<int>(k & 1);
+      Apply(p, stress, q, pqPartials);
+      const double alpha = scalars[parity] / SumPartials(pqPartials);
+      for (size_t i = 0; i < ndof; ++i)
+      {
+        u[i] += alpha * p[i];
+        r[i] = r[i] - alpha * q[i];
+      }
+      StoreResiduals(r, z, rrPartials, rzPartials);
+      const double rr = SumPartials(rrPartials);
+      const double rzNew = SumPartials(rzPartials);
+      ++iterations;
+      scalars[1 - parity] = rzNew;
+      if (rr < threshold)
+      {
+        return true;
+      }
+      const double beta = rzNew / scalars[parity];
+      for (size_t i = 0; i < ndof; ++i)
+      {
+        p[i] = z[i] + beta * p[i];
+      }
+    }
+    return false;
+  }
+
+private:
+  static constexpr size_t Stride = (D + 1) * D + 1; // D + 1 gradients, then the volume
+
+  bool
+  Fixed(size_t node) const
+  {
+    return !m_Mesh->fixed.empty() && m_Mesh->fixed[node];
+  }
+
+  /** The shuffle-down tree of one warp (v_l += v_{l+o} for o = 16, 8, 4, 2, 1): lane 0's result. */
+  static double
+  WarpSum(double * v)
+  {
+    for (int o = Warp / 2; o > 0; o >>= 1)
+    {
+      for (int l = 0; l < o; ++l)
+      {
+        v[l] = v[l] + v[l + o];
+      }
+    }
+    return v[0];
+  }
+
+  /** BlockCombine's sum of BlockThreads values (missing ones 0): each warp's tree, then the warps in order. */
+  static double
+  BlockSum(double * v)
+  {
+    double s = 0.0;
+    for (int w = 0; w < BlockThreads / Warp; ++w)
+    {
+      s = s + WarpSum(v + w * Warp);
+    }
+    return s;
+  }
+
+  /** SumPartials: thread t sums partials t, t + BlockThreads, ... in order, then the block sum. */
+  static double
+  SumPartials(const std::vector<double> & partials)
+  {
+    double v[BlockThreads];
+    for (int t = 0; t < BlockThreads; ++t)
+    {
+      v[t] = 0.0;
+      for (size_t i = static_cast<size_t>(t); i < partials.size(); i += BlockThreads)
+      {
+        v[t] += partials[i];
+      }
+    }
+    return BlockSum(v);
+  }
+
+  /** StoreResidual for every degree of freedom: z = M^-1 r and the per-block partial sums of r.r and r.z. */
+  void
+  StoreResiduals(const std::vector<double> & r,
+                 std::vector<double> &       z,
+                 std::vector<double> &       rrPartials,
+                 std::vector<double> &       rzPartials) const
+  {
+    const size_t ndof = r.size();
+    double       rr[BlockThreads], rz[BlockThreads];
+    for (size_t b = 0; b < rrPartials.size(); ++b)
+    {
+      for (int t = 0; t < BlockThreads; ++t)
+      {
+        const size_t i = b * BlockThreads + static_cast<size_t>(t);
+        rr[t] = rz[t] = 0.0;
+        if (i < ndof)
+        {
+          z[i] = m_InverseDiagonal[i] * r[i];
+          rr[t] = r[i] * r[i];
+          rz[t] = r[i] * z[i];
+        }
+      }
+      rrPartials[b] = BlockSum(rr);
+      rzPartials[b] = BlockSum(rz);
+    }
+  }
+
+  /** q = K p (0 on fixed nodes) and the per-node-block partial sums of p . q (ElementStresses, NodeApplyBlock). */
+  void
+  Apply(const std::vector<double> & p,
+        std::vector<double> &       stress,
+        std::vector<double> &       q,
+        std::vector<double> &       pqPartials) const
+  {
+    constexpr unsigned int NV = D + 1;
+    const auto &           elements = m_Mesh->elements;
+    for (size_t e = 0; e < elements.size(); ++e)
+    {
+      const double * g = &m_Geometry[e * Stride];
+      double         G[D][D] = {};
+      for (unsigned int b = 0; b < NV; ++b)
+      {
+        for (unsigned int i = 0; i < D; ++i)
+        {
+          const double pb = p[static_cast<size_t>(elements[e][b]) * D + i];
+          for (unsigned int j = 0; j < D; ++j)
+          {
+            G[i][j] += pb * g[b * D + j];
+          }
+        }
+      }
+      double trace = 0.0;
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        trace += G[i][i];
+      }
+      const double V = g[NV * D];
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          stress[e * D * D + i * D + j] = V * ((i == j ? m_Lambda * trace : 0.0) + m_Mu * (G[i][j] + G[j][i]));
+        }
+      }
+    }
+    const size_t  nn = m_Mesh->NumberOfNodes();
+    constexpr int NodesPerBlock = BlockThreads / Warp;
+    double        pq[BlockThreads];
+    for (size_t block = 0; block < pqPartials.size(); ++block)
+    {
+      std::fill(pq, pq + BlockThreads, 0.0);
+      for (int w = 0; w < NodesPerBlock; ++w)
+      {
+        const size_t a = block * NodesPerBlock + static_cast<size_t>(w);
+        if (a >= nn)
+        {
+          continue;
+        }
+        double y[Warp][D] = {};
+        if (!Fixed(a))
+        {
+          for (int lane = 0; lane < Warp; ++lane)
+          {
+            for (int64_t i = m_Start[a] + lane; i < m_Start[a + 1]; i += Warp)
+            {
+              const size_t e = static_cast<size_t>(m_Incidence[i] / NV),
+                           slot = static_cast<size_t>(m_Incidence[i] % NV);
+              const double * g = &m_Geometry[e * Stride + slot * D];
+              const double * S = &stress[e * D * D];
+              for (unsigned int row = 0; row < D; ++row)
+              {
+                for (unsigned int c = 0; c < D; ++c)
+                {
+                  y[lane][row] += S[row * D + c] * g[c];
+                }
+              }
+            }
+          }
+        }
+        double sum = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          double v[Warp];
+          for (int lane = 0; lane < Warp; ++lane)
+          {
+            v[lane] = y[lane][k];
+          }
+          const double yk = WarpSum(v);
+          q[a * D + k] = yk;
+          sum += p[a * D + k] * yk;
+        }
+        pq[w * Warp] = sum;
+      }
+      pqPartials[block] = BlockSum(pq);
+    }
+  }
+
+  const SimplexMesh<D> * m_Mesh{ nullptr };
+  double                 m_Lambda{ 0.0 };
+  double                 m_Mu{ 0.0 };
+  std::vector<double>    m_Geometry;
+  std::vector<int64_t>   m_Start, m_Incidence;
+  std::vector<double>    m_InverseDiagonal;
+};
+} // namespace dmr
+} // namespace itk
+
+#endif
