@@ -147,6 +147,57 @@ TEST(FEMRegistrationMethod, SolverToleranceSetsWhereTheSolveStops)
   EXPECT_NEAR(loose->GetFinalSSD(), tight->GetFinalSSD(), 1e-3 * tight->GetFinalSSD());
 }
 
+// GPUOrderSolve: every system by the GPU-order CG (its equality with the device is a GPU test); the run registers as
+// the default CG's does, to the tolerance's reach, and is repeatable bit for bit
+TEST(FEMRegistrationMethod, GPUOrderSolveRegistersLikeTheAssembledCG)
+{
+  auto ordered = SmallRegistration(MeshMode::Dynamic, 15);
+  auto assembled = SmallRegistration(MeshMode::Dynamic, 15);
+  auto again = SmallRegistration(MeshMode::Dynamic, 15);
+  for (auto * m : { ordered.GetPointer(), assembled.GetPointer(), again.GetPointer() })
+  {
+    m->SetDirectSolverMaximumDegreesOfFreedom(0);
+    m->SetSolverTolerance(1e-10);
+  }
+  ordered->SetGPUOrderSolve(true);
+  again->SetGPUOrderSolve(true);
+  ordered->Update();
+  assembled->Update();
+  again->Update();
+  size_t orderedProducts = 0, assembledProducts = 0;
+  for (const auto & r : ordered->GetHistory())
+  {
+    EXPECT_FALSE(r.directSolve);
+    EXPECT_GT(r.solverIterations, 0u);
+    orderedProducts += r.solverIterations;
+  }
+  for (const auto & r : assembled->GetHistory())
+  {
+    assembledProducts += r.solverIterations;
+  }
+  // a different CG ran: from u = 0 and counting products, where the assembled one starts from the last solution
+  std::cout << "CG products: GPU order " << orderedProducts << ", assembled " << assembledProducts << std::endl;
+  EXPECT_NE(orderedProducts, assembledProducts);
+  EXPECT_LT(ordered->GetFinalSSD(), 0.8 * ordered->GetHistory().front().ssd); // it registered
+  EXPECT_NEAR(ordered->GetFinalSSD(), assembled->GetFinalSSD(), 1e-4 * assembled->GetFinalSSD());
+  const auto * a = ordered->GetDisplacementField();
+  const auto * b = assembled->GetDisplacementField();
+  const auto * c = again->GetDisplacementField();
+  const size_t n = a->GetLargestPossibleRegion().GetNumberOfPixels();
+  double       largest = 0.0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      largest =
+        std::max(largest, std::abs(static_cast<double>(a->GetBufferPointer()[p][k]) - b->GetBufferPointer()[p][k]));
+      EXPECT_EQ(a->GetBufferPointer()[p][k], c->GetBufferPointer()[p][k]);
+    }
+  }
+  std::cout << "GPU-order CG against the assembled CG: fields up to " << largest << " mm apart" << std::endl;
+  EXPECT_LT(largest, 0.01);
+}
+
 TEST(FEMRegistrationMethod, DynamicMeshLowersSSDWithPositiveJacobian)
 {
   // beta R / D = 0.02 at iteration 1 makes each iteration lower the SSD by a few percent: 100 iterations
