@@ -18,6 +18,7 @@
 #ifndef dmrElasticCG_h
 #define dmrElasticCG_h
 
+#include "dmrElasticOperator.h"
 #include "dmrSimplexMesh.h"
 #include "itkMacro.h"
 
@@ -31,7 +32,8 @@ namespace itk
 namespace dmr
 {
 /** Matrix-free Jacobi-preconditioned conjugate gradients for LinearElasticFEMSolver's system, computed with the CUDA
- * back-end's arithmetic in the CUDA back-end's order (dmrRegistrationBackend.cu: ElementGeometryKernel,
+ * back-end's arithmetic (the per-element and per-node functions of dmrElasticOperator.h, which its kernels call too) in
+ * the CUDA back-end's order (dmrRegistrationBackend.cu: ElementGeometryKernel,
  * ElasticDiagonalKernel, ElementStresses, NodeApplyBlock, CGStartKernel, CGStepBlock, CGDirection and the fixed
  * reduction trees of BlockCombine/SumPartials), so that the two back-ends take the same iterates, bit for bit, and stop
  * after the same product. With different rounding, two CGs stopped at a tolerance differ by about that tolerance, and
@@ -65,40 +67,9 @@ public:
     m_Geometry.assign(ne * Stride, 0.0);
     for (size_t e = 0; e < ne; ++e)
     {
-      double   x0[D], inv[D][D];
-      double * g = &m_Geometry[e * Stride];
-      mesh.EdgeMatrix(e, x0, &inv);
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        g[k] = 0.0;
-      }
-      for (unsigned int a = 1; a <= D; ++a)
-      {
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          g[a * D + k] = inv[a - 1][k];
-          g[k] -= g[a * D + k];
-        }
-      }
-      double m[D][D];
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        for (unsigned int c = 0; c < D; ++c)
-        {
-          m[r][c] = mesh.nodes[mesh.elements[e][c + 1] * D + r] - mesh.nodes[mesh.elements[e][0] * D + r];
-        }
-      }
-      double det;
-      if constexpr (D == 2)
-      {
-        det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-      }
-      else
-      {
-        det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-              m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-      }
-      g[NV * D] = std::fabs(det) / (D == 2 ? 2.0 : 6.0);
+      double x0[D], inv[D][D];
+      mesh.EdgeMatrix(e, x0, &inv); // the inverse edge matrix the GPU reads from BarycentricMap::ElementAffine
+      ElasticElementGeometry<D>(&inv[0][0], mesh.nodes.data(), mesh.elements[e].data(), &m_Geometry[e * Stride]);
     }
     m_Start.assign(nn + 1, 0);
     for (size_t e = 0; e < ne; ++e)
@@ -127,18 +98,11 @@ public:
       double d[D] = {};
       for (int64_t i = m_Start[a]; i < m_Start[a + 1]; ++i)
       {
-        const double * g = &m_Geometry[static_cast<size_t>(m_Incidence[i] / NV) * Stride];
-        const size_t   slot = static_cast<size_t>(m_Incidence[i] % NV);
-        const double   V = g[NV * D];
-        double         gg = 0.0;
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          gg += g[slot * D + k] * g[slot * D + k];
-        }
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          d[k] += V * ((lambda + mu) * g[slot * D + k] * g[slot * D + k] + mu * gg);
-        }
+        AddElasticDiagonal<D>(&m_Geometry[static_cast<size_t>(m_Incidence[i] / NV) * Stride],
+                              static_cast<unsigned int>(m_Incidence[i] % NV),
+                              lambda,
+                              mu,
+                              d);
       }
       for (unsigned int k = 0; k < D; ++k)
       {
@@ -211,7 +175,7 @@ public:
   }
 
 private:
-  static constexpr size_t Stride = (D + 1) * D + 1; // D + 1 gradients, then the volume
+  static constexpr size_t Stride = ElasticGeometryStride<D>(); // D + 1 gradients, then the volume
 
   bool
   Fixed(size_t node) const
@@ -299,32 +263,8 @@ private:
     const auto &           elements = m_Mesh->elements;
     for (size_t e = 0; e < elements.size(); ++e)
     {
-      const double * g = &m_Geometry[e * Stride];
-      double         G[D][D] = {};
-      for (unsigned int b = 0; b < NV; ++b)
-      {
-        for (unsigned int i = 0; i < D; ++i)
-        {
-          const double pb = p[static_cast<size_t>(elements[e][b]) * D + i];
-          for (unsigned int j = 0; j < D; ++j)
-          {
-            G[i][j] += pb * g[b * D + j];
-          }
-        }
-      }
-      double trace = 0.0;
-      for (unsigned int i = 0; i < D; ++i)
-      {
-        trace += G[i][i];
-      }
-      const double V = g[NV * D];
-      for (unsigned int i = 0; i < D; ++i)
-      {
-        for (unsigned int j = 0; j < D; ++j)
-        {
-          stress[e * D * D + i * D + j] = V * ((i == j ? m_Lambda * trace : 0.0) + m_Mu * (G[i][j] + G[j][i]));
-        }
-      }
+      ElasticElementStress<D>(
+        &m_Geometry[e * Stride], elements[e].data(), p.data(), m_Lambda, m_Mu, &stress[e * D * D]);
     }
     const size_t  nn = m_Mesh->NumberOfNodes();
     constexpr int NodesPerBlock = BlockThreads / Warp;
@@ -348,15 +288,7 @@ private:
             {
               const size_t e = static_cast<size_t>(m_Incidence[i] / NV),
                            slot = static_cast<size_t>(m_Incidence[i] % NV);
-              const double * g = &m_Geometry[e * Stride + slot * D];
-              const double * S = &stress[e * D * D];
-              for (unsigned int row = 0; row < D; ++row)
-              {
-                for (unsigned int c = 0; c < D; ++c)
-                {
-                  y[lane][row] += S[row * D + c] * g[c];
-                }
-              }
+              AddElasticNodeTerm<D>(&stress[e * D * D], &m_Geometry[e * Stride + slot * D], y[lane]);
             }
           }
         }

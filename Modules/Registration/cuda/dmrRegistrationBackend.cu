@@ -22,6 +22,7 @@
  * per-block partials summed in a fixed order, maxima, or (the force gather) 64-bit fixed-point sums. */
 #include "dmrRegistrationBackend.h"
 #include "dmrCudaUtils.cuh"
+#include "dmrElasticOperator.h"
 #include "dmrFixedPointGather.h"
 
 #include <cooperative_groups.h>
@@ -905,7 +906,7 @@ template <int D>
 __device__ constexpr int
 GeometryStride()
 {
-  return (D + 1) * D + 1;
+  return static_cast<int>(ElasticGeometryStride<D>());
 }
 
 template <int D>
@@ -919,40 +920,9 @@ ElementGeometryKernel(long long      ne,
   for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
        e += static_cast<long long>(gridDim.x) * blockDim.x)
   {
-    const double * A = affine + e * (D * D + D); // inverse edge matrix: row r = grad phi_{r+1}
-    double *       g = geometry + e * GeometryStride<D>();
-    for (int k = 0; k < D; ++k)
-    {
-      g[k] = 0.0;
-    }
-    for (int a = 1; a <= D; ++a)
-    {
-      for (int k = 0; k < D; ++k)
-      {
-        g[a * D + k] = A[(a - 1) * D + k];
-        g[k] -= g[a * D + k];
-      }
-    }
-    const int * v = elements + e * (D + 1);
-    double      m[D][D];
-    for (int r = 0; r < D; ++r)
-    {
-      for (int c = 0; c < D; ++c)
-      {
-        m[r][c] = nodes[v[c + 1] * D + r] - nodes[v[0] * D + r];
-      }
-    }
-    double det;
-    if (D == 2)
-    {
-      det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-    }
-    else
-    {
-      det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-            m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-    }
-    g[(D + 1) * D] = fabs(det) / (D == 2 ? 2.0 : 6.0);
+    // affine: the inverse edge matrix (row r = grad phi_{r+1}) then the first vertex
+    ElasticElementGeometry<D>(
+      affine + e * (D * D + D), nodes, elements + e * (D + 1), geometry + e * GeometryStride<D>());
   }
 }
 
@@ -974,18 +944,8 @@ ElasticDiagonalKernel(long long       nn,
     double d[D] = {};
     for (int i = start[a]; i < start[a + 1]; ++i)
     {
-      const int      e = incidence[i] / (D + 1), slot = incidence[i] % (D + 1);
-      const double * g = geometry + static_cast<long long>(e) * GeometryStride<D>();
-      const double   V = g[(D + 1) * D];
-      double         gg = 0.0;
-      for (int k = 0; k < D; ++k)
-      {
-        gg += g[slot * D + k] * g[slot * D + k];
-      }
-      for (int k = 0; k < D; ++k)
-      {
-        d[k] += V * ((lambda + mu) * g[slot * D + k] * g[slot * D + k] + mu * gg);
-      }
+      const int e = incidence[i] / (D + 1), slot = incidence[i] % (D + 1);
+      AddElasticDiagonal<D>(geometry + static_cast<long long>(e) * GeometryStride<D>(), slot, lambda, mu, d);
     }
     for (int k = 0; k < D; ++k)
     {
@@ -1027,33 +987,8 @@ ElementStresses(long long      ne,
   for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < ne;
        e += static_cast<long long>(gridDim.x) * blockDim.x)
   {
-    const double * g = geometry + e * GeometryStride<D>();
-    const int *    v = elements + e * (D + 1);
-    double         G[D][D] = {};
-    for (int b = 0; b <= D; ++b)
-    {
-      for (int i = 0; i < D; ++i)
-      {
-        const double pb = p[static_cast<long long>(v[b]) * D + i];
-        for (int j = 0; j < D; ++j)
-        {
-          G[i][j] += pb * g[b * D + j];
-        }
-      }
-    }
-    double trace = 0.0;
-    for (int i = 0; i < D; ++i)
-    {
-      trace += G[i][i];
-    }
-    const double V = g[(D + 1) * D];
-    for (int i = 0; i < D; ++i)
-    {
-      for (int j = 0; j < D; ++j)
-      {
-        stress[e * D * D + i * D + j] = V * ((i == j ? lambda * trace : 0.0) + mu * (G[i][j] + G[j][i]));
-      }
-    }
+    ElasticElementStress<D>(
+      geometry + e * GeometryStride<D>(), elements + e * (D + 1), p, lambda, mu, stress + e * D * D);
   }
 }
 
@@ -1101,14 +1036,7 @@ NodeApplyBlock(long long       block,
     {
       const int      e = incidence[i] / (D + 1), slot = incidence[i] % (D + 1);
       const double * g = geometry + static_cast<long long>(e) * GeometryStride<D>() + slot * D;
-      const double * S = stress + static_cast<long long>(e) * D * D;
-      for (int r = 0; r < D; ++r)
-      {
-        for (int c = 0; c < D; ++c)
-        {
-          y[r] += S[r * D + c] * g[c];
-        }
-      }
+      AddElasticNodeTerm<D>(stress + static_cast<long long>(e) * D * D, g, y);
     }
   }
   for (int o = 16; o > 0; o >>= 1)
