@@ -635,3 +635,152 @@ TEST(DiscreteCVT, ReinitialisingWithFewerCellsStaysInBounds)
   EXPECT_LE(result.energyAfter, result.energyBefore);
 }
 } // namespace
+
+namespace
+{
+/** Reference for Neighbourhood<D>::RemovalKeepsConnected on explicit coordinates: the positions of `member` that touch
+ * the centre by a face are reached from one another by face steps through member positions (never the centre). */
+template <unsigned int D>
+bool
+FaceNeighboursStayConnected(uint32_t member)
+{
+  constexpr unsigned int N = D == 2 ? 9 : 27;
+  auto                   coordinates = [](unsigned int q, int(&c)[3]) {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      c[k] = k < D ? static_cast<int>(q % 3) : 1;
+      q /= k < D ? 3u : 1u;
+    }
+  };
+  auto isMember = [&](unsigned int q) { return q != N / 2 && ((member >> q) & 1u); };
+  auto touchesCentre = [&](unsigned int q) {
+    int c[3];
+    coordinates(q, c);
+    return std::abs(c[0] - 1) + std::abs(c[1] - 1) + std::abs(c[2] - 1) == 1;
+  };
+  std::vector<unsigned int> faces;
+  for (unsigned int q = 0; q < N; ++q)
+  {
+    if (isMember(q) && touchesCentre(q))
+    {
+      faces.push_back(q);
+    }
+  }
+  if (faces.empty())
+  {
+    return false;
+  }
+  std::vector<bool>         seen(N, false);
+  std::vector<unsigned int> stack{ faces[0] };
+  seen[faces[0]] = true;
+  while (!stack.empty())
+  {
+    const unsigned int q = stack.back();
+    stack.pop_back();
+    int a[3];
+    coordinates(q, a);
+    for (unsigned int o = 0; o < N; ++o)
+    {
+      int b[3];
+      coordinates(o, b);
+      if (!seen[o] && isMember(o) && std::abs(a[0] - b[0]) + std::abs(a[1] - b[1]) + std::abs(a[2] - b[2]) == 1)
+      {
+        seen[o] = true;
+        stack.push_back(o);
+      }
+    }
+  }
+  for (unsigned int q : faces)
+  {
+    if (!seen[q])
+    {
+      return false;
+    }
+  }
+  return true;
+}
+} // namespace
+
+// The bit-set connectivity test that the CPU sweeps and the CUDA kernels share, against a flood fill on coordinates:
+// every 2D neighbourhood, and in 3D random ones (each position in the cell with probability 1/4 to 3/4) plus every
+// neighbourhood whose 18 face and edge positions are all in the cell or all not (the corners varied).
+TEST(Neighbourhood, RemovalTestEqualsAFloodFillOnCoordinates)
+{
+  size_t connected = 0, split = 0;
+  for (uint32_t member = 0; member < (1u << 9); ++member)
+  {
+    const bool expected = FaceNeighboursStayConnected<2>(member);
+    ASSERT_EQ(itk::dmr::Neighbourhood<2>::RemovalKeepsConnected(member), expected) << "2D member set " << member;
+    (expected ? connected : split) += 1;
+  }
+  std::mt19937 random(7u);
+  for (unsigned int n = 0; n < 200000; ++n)
+  {
+    const double p = 0.25 + 0.5 * static_cast<double>(n % 3) / 2.0;
+    uint32_t     member = 0;
+    for (unsigned int q = 0; q < 27; ++q)
+    {
+      member |= std::bernoulli_distribution(p)(random) ? 1u << q : 0u;
+    }
+    const bool expected = FaceNeighboursStayConnected<3>(member);
+    ASSERT_EQ(itk::dmr::Neighbourhood<3>::RemovalKeepsConnected(member), expected) << "3D member set " << member;
+    (expected ? connected : split) += 1;
+  }
+  constexpr uint32_t corners =
+    (1u << 0) | (1u << 2) | (1u << 6) | (1u << 8) | (1u << 18) | (1u << 20) | (1u << 24) | (1u << 26);
+  for (uint32_t bits = 0; bits < 256; ++bits)
+  {
+    uint32_t cornerSet = 0;
+    for (unsigned int c = 0, q = 0; q < 27; ++q)
+    {
+      if ((corners >> q) & 1u)
+      {
+        cornerSet |= ((bits >> c++) & 1u) << q;
+      }
+    }
+    for (const uint32_t rest : { 0u, ((1u << 27) - 1u) & ~corners })
+    {
+      const uint32_t member = rest | cornerSet;
+      ASSERT_EQ(itk::dmr::Neighbourhood<3>::RemovalKeepsConnected(member), FaceNeighboursStayConnected<3>(member))
+        << "3D member set " << member;
+    }
+  }
+  // both outcomes occur often: the comparison is not a comparison of constants
+  EXPECT_GT(connected, 10000u);
+  EXPECT_GT(split, 10000u);
+}
+
+// The division-free index of the CVT's active lists equals Grid::Index, on grids at the 32-bit limit and on those it
+// leaves to Grid::Index (an axis of size 1, more than 2^32 - 1 pixels).
+TEST(GridIndexer, EqualsGridIndex)
+{
+  auto check = [](const auto & grid, bool byMultiplication) {
+    using GridType = std::decay_t<decltype(grid)>;
+    const itk::dmr::GridIndexer<GridType::Dimension> indexer(grid);
+    EXPECT_EQ(indexer.GetByMultiplication(), byMultiplication);
+    std::mt19937_64     random(11u);
+    std::vector<size_t> pixels{ 0, 1, grid.numberOfPixels - 1, grid.numberOfPixels / 2 };
+    for (unsigned int k = 0; k < GridType::Dimension; ++k)
+    {
+      pixels.push_back(grid.stride[k] * (grid.size[k] - 1));
+      pixels.push_back(grid.stride[k] - (grid.stride[k] > 0 ? 1 : 0));
+    }
+    for (unsigned int n = 0; n < 100000; ++n)
+    {
+      pixels.push_back(std::uniform_int_distribution<size_t>(0, grid.numberOfPixels - 1)(random));
+    }
+    for (const size_t p : pixels)
+    {
+      ASSERT_EQ(indexer.Index(p), grid.Index(p)) << "pixel " << p;
+    }
+  };
+  const std::array<double, 2> s2{ 1.0, 1.0 };
+  const std::array<double, 3> s3{ 1.0, 1.0, 1.0 };
+  check(itk::dmr::Grid<2>(std::array<size_t, 2>{ 512, 512 }, s2), true);
+  check(itk::dmr::Grid<2>(std::array<size_t, 2>{ 65535, 65537 }, s2), true); // 2^32 - 1 pixels
+  check(itk::dmr::Grid<2>(std::array<size_t, 2>{ 65536, 65536 }, s2), false);
+  check(itk::dmr::Grid<3>(std::array<size_t, 3>{ 256, 256, 132 }, s3), true);
+  check(itk::dmr::Grid<3>(std::array<size_t, 3>{ 4093, 1031, 1017 }, s3), true);
+  check(itk::dmr::Grid<3>(std::array<size_t, 3>{ 3, 1, 7 }, s3), false);
+  check(itk::dmr::Grid<3>(std::array<size_t, 3>{ 1, 5, 2 }, s3), false);
+}

@@ -49,6 +49,7 @@
  * fixed-shape (deterministic) reduction. */
 #include "dmrCVTBackend.h"
 #include "dmrCudaUtils.cuh"
+#include "dmrNeighbourhood.h"
 
 #include <cub/block/block_reduce.cuh>
 #include <cub/device/device_radix_sort.cuh>
@@ -74,62 +75,6 @@ struct GridParams
   int32_t stride[3];
   double  spacing[3];
   int32_t numberOfPixels;
-};
-
-/** The 3^D neighbourhood of DiscreteCVT as bit sets: position q = sum_k (offset_k + 1) 3^k (bit q). Everything is
- * a compile-time constant, so the connectivity test needs no memory. */
-template <unsigned int D>
-struct Neighbourhood
-{
-  static constexpr unsigned int Size = D == 2 ? 9 : 27;
-  static constexpr unsigned int Centre = Size / 2;
-
-  __host__ __device__ static constexpr uint32_t
-  Power(unsigned int k)
-  {
-    return k == 0 ? 1u : 3u * Power(k - 1);
-  }
-  __host__ __device__ static constexpr int
-  Offset(unsigned int q, unsigned int k)
-  {
-    return static_cast<int>((q / Power(k)) % 3u) - 1;
-  }
-  /** The positions whose digit along axis k is not `digit`. */
-  __host__ __device__ static constexpr uint32_t
-  NotDigit(unsigned int k, unsigned int digit)
-  {
-    uint32_t mask = 0;
-    for (unsigned int q = 0; q < Size; ++q)
-    {
-      mask |= (q / Power(k)) % 3u != digit ? 1u << q : 0u;
-    }
-    return mask;
-  }
-  /** The centre's face neighbours. */
-  __host__ __device__ static constexpr uint32_t
-  FaceMask()
-  {
-    uint32_t mask = 0;
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      mask |= (1u << (Centre - Power(k))) | (1u << (Centre + Power(k)));
-    }
-    return mask;
-  }
-  /** The positions that differ by one along one axis from a position of `set`. */
-  __device__ static uint32_t
-  Dilate(uint32_t set)
-  {
-    constexpr uint32_t up0 = NotDigit(0, 2), down0 = NotDigit(0, 0);
-    constexpr uint32_t up1 = NotDigit(1, 2), down1 = NotDigit(1, 0);
-    uint32_t           out = ((set & up0) << 1) | ((set & down0) >> 1) | ((set & up1) << 3) | ((set & down1) >> 3);
-    if constexpr (D == 3)
-    {
-      constexpr uint32_t up2 = NotDigit(2, 2), down2 = NotDigit(2, 0);
-      out |= ((set & up2) << 9) | ((set & down2) >> 9);
-    }
-    return out;
-  }
 };
 
 /** One pixel's proposed swap. */
@@ -246,22 +191,7 @@ RemovalKeepsCellConnected(const GridParams & g, const TLabel * labels, int32_t p
       member |= 1u << q;
     }
   }
-  const uint32_t faces = member & N::FaceMask();
-  if (faces == 0)
-  {
-    return false; // the pixel is its cell's last link (or its only pixel)
-  }
-  uint32_t reach = faces & (~faces + 1u); // the first face neighbour in the cell
-  for (;;)
-  {
-    const uint32_t next = reach | (N::Dilate(reach) & member);
-    if (next == reach)
-    {
-      break;
-    }
-    reach = next;
-  }
-  return (faces & ~reach) == 0;
+  return N::RemovalKeepsConnected(member);
 }
 
 struct ColourParams

@@ -19,6 +19,7 @@
 #define dmrDiscreteCVT_h
 
 #include "dmrGrid.h"
+#include "dmrNeighbourhood.h"
 #include "itkMacro.h"
 #include <vector>
 #include <numeric>
@@ -222,7 +223,7 @@ public:
   void
   Position(size_t p, double * x) const
   {
-    Position(m_Grid.Index(p), x);
+    Position(PixelIndex(p), x);
   }
 
   /** Greedy least-cost pair contraction (paper 4.4) down to numberOfCells clusters.
@@ -709,83 +710,54 @@ public:
   bool
   RemovalKeepsCellConnected(size_t p) const
   {
-    return RemovalKeepsCellConnected(p, m_Grid.Index(p));
+    return RemovalKeepsCellConnected(p, PixelIndex(p));
   }
   /** The same, with p's grid index given. */
   bool
   RemovalKeepsCellConnected(size_t p, const IndexType & idx) const
   {
-    const LabelType        label = m_Labels[p];
-    constexpr unsigned int N = NeighbourhoodSize;
-    bool                   member[N];
-    for (unsigned int q = 0; q < N; ++q)
+    const LabelType label = m_Labels[p];
+    uint32_t        member = 0;
+    bool            interior = true;
+    for (unsigned int k = 0; k < D; ++k)
     {
-      member[q] = false;
-      if (q == Centre)
+      interior = interior && idx[k] > 0 && idx[k] + 1 < static_cast<int64_t>(m_Grid.size[k]);
+    }
+    if (interior)
+    {
+      // no bounds to check: all 3^D neighbours are in the grid
+      for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
       {
-        continue;
+        member |=
+          static_cast<uint32_t>(m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q])] == label)
+          << q;
       }
-      int64_t offset = 0;
-      bool    inside = true;
-      for (unsigned int k = 0; k < D; ++k)
+    }
+    else
+    {
+      for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
       {
-        const int64_t c = idx[k] + m_Offsets[q][k];
-        if (c < 0 || c >= static_cast<int64_t>(m_Grid.size[k]))
+        bool inside = true;
+        for (unsigned int k = 0; k < D; ++k)
         {
-          inside = false;
-          break;
+          const int64_t c = idx[k] + m_Offsets[q][k];
+          inside = inside && c >= 0 && c < static_cast<int64_t>(m_Grid.size[k]);
         }
-        offset += m_Offsets[q][k] * static_cast<int64_t>(m_Grid.stride[k]);
-      }
-      member[q] = inside && m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + offset)] == label;
-    }
-    // flood fill from the first face neighbour in the cell, through face adjacency inside the neighbourhood
-    int start = -1;
-    for (unsigned int f = 0; f < 2 * D; ++f)
-    {
-      if (member[m_FaceNeighbours[f]])
-      {
-        start = static_cast<int>(m_FaceNeighbours[f]);
-        break;
-      }
-    }
-    if (start < 0)
-    {
-      return false; // the pixel is its cell's last link (or its only pixel)
-    }
-    bool         seen[N] = {};
-    unsigned int stack[N];
-    unsigned int top = 0;
-    stack[top++] = static_cast<unsigned int>(start);
-    seen[start] = true;
-    while (top > 0)
-    {
-      const unsigned int q = stack[--top];
-      for (unsigned int a = 0; a < m_AdjacencyCount[q]; ++a)
-      {
-        const unsigned int nq = m_Adjacency[q][a];
-        if (member[nq] && !seen[nq])
+        if (inside && m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q])] == label)
         {
-          seen[nq] = true;
-          stack[top++] = nq;
+          member |= 1u << q;
         }
       }
     }
-    for (unsigned int f = 0; f < 2 * D; ++f)
-    {
-      if (member[m_FaceNeighbours[f]] && !seen[m_FaceNeighbours[f]])
-      {
-        return false;
-      }
-    }
-    return true;
+    // the flood fill through face adjacency inside the neighbourhood, on bit sets (the CUDA kernels call it too)
+    return Neighbourhood<D>::RemovalKeepsConnected(member);
   }
 
   /** Best swap for pixel p against the current (frozen) state; false when none lowers the energy. */
   bool
   ProposeSwap(size_t p, Proposal & out) const
   {
-    const auto      idx = m_Grid.Index(p);
+    const auto      idx = PixelIndex(p);
     const LabelType own = m_Labels[p];
     LabelType       candidates[2 * D];
     const unsigned  nc = NeighbourCells(p, idx, own, candidates);
@@ -1076,45 +1048,24 @@ private:
   {
     for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
     {
-      unsigned int rest = q;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        m_Offsets[q][k] = static_cast<int>(rest % 3) - 1;
-        rest /= 3;
-      }
-    }
-    unsigned int f = 0;
-    for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
-    {
-      m_AdjacencyCount[q] = 0;
       int manhattan = 0;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        manhattan += std::abs(m_Offsets[q][k]);
-      }
-      if (manhattan == 1)
-      {
-        m_FaceNeighbours[f++] = q;
-      }
-      m_FaceOrCentre[q] = manhattan <= 1;
       m_LinearOffsets[q] = 0;
       for (unsigned int k = 0; k < D; ++k)
       {
+        m_Offsets[q][k] = Neighbourhood<D>::Offset(q, k);
+        manhattan += std::abs(m_Offsets[q][k]);
         m_LinearOffsets[q] += m_Offsets[q][k] * static_cast<int64_t>(m_Grid.stride[k]);
       }
-      for (unsigned int o = 0; o < NeighbourhoodSize; ++o)
-      {
-        int diff = 0;
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          diff += std::abs(m_Offsets[q][k] - m_Offsets[o][k]);
-        }
-        if (diff == 1 && o != Centre && q != Centre)
-        {
-          m_Adjacency[q][m_AdjacencyCount[q]++] = o;
-        }
-      }
+      m_FaceOrCentre[q] = manhattan <= 1;
     }
+    m_Indexer = GridIndexer<D>(m_Grid);
+  }
+
+  /** m_Grid.Index(p), without divisions (the active lists visit pixels out of order). */
+  IndexType
+  PixelIndex(size_t p) const
+  {
+    return m_Indexer.Index(p);
   }
 
   /** Phase 1: proposals of all pixels of one parity colour against the frozen labels (parallel, deterministic
@@ -1227,7 +1178,7 @@ private:
       {
         continue;
       }
-      if (!IsBoundary(p, m_Grid.Index(p)))
+      if (!IsBoundary(p, PixelIndex(p)))
       {
         m_PixelState[p] &= static_cast<uint8_t>(~InCellList); // listed again when it becomes a boundary pixel
         continue;
@@ -1363,7 +1314,7 @@ private:
           list[kept++] = static_cast<uint32_t>(p); // a boundary pixel still, and still no proposal (ActiveSwap)
           continue;
         }
-        const auto      idx = m_Grid.Index(p);
+        const auto      idx = PixelIndex(p);
         const LabelType own = m_Labels[p];
         LabelType       candidates[2 * D];
         const unsigned  nc = NeighbourCells(p, idx, own, candidates);
@@ -1464,7 +1415,7 @@ private:
       for (size_t i = c * chunk; i < end; ++i)
       {
         const size_t    p = queue[i];
-        const auto      idx = m_Grid.Index(p);
+        const auto      idx = PixelIndex(p);
         const LabelType own = m_Labels[p];
         LabelType       candidates[2 * D];
         const unsigned  nc = NeighbourCells(p, idx, own, candidates);
@@ -1495,7 +1446,7 @@ private:
     for (size_t i = 0; i < count; ++i)
     {
       const size_t p = m_Proposals[i].pixel;
-      const auto   idx = m_Grid.Index(p);
+      const auto   idx = PixelIndex(p);
       m_PixelState[p] &= static_cast<uint8_t>(~InCellList); // its entry is in its former cell's gather list
       for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
       {
@@ -1646,9 +1597,6 @@ private:
   double                             m_Energy{ 0.0 };
   double                             m_SwapTolerance{ 0.0 };
   int                                m_Offsets[NeighbourhoodSize][D];
-  unsigned int                       m_FaceNeighbours[2 * D];
-  unsigned int                       m_Adjacency[NeighbourhoodSize][2 * D];
-  unsigned int                       m_AdjacencyCount[NeighbourhoodSize];
   std::vector<std::vector<Proposal>> m_ChunkProposals;
   std::vector<Proposal>              m_Proposals;
   std::vector<double>                m_DeltaMass;
@@ -1660,6 +1608,7 @@ private:
   std::function<void(double)>        m_Checkpoint;
   int64_t                            m_LinearOffsets[NeighbourhoodSize];
   bool                               m_FaceOrCentre[NeighbourhoodSize];
+  GridIndexer<D>                     m_Indexer;
   // active lists (see class comment)
   std::vector<uint8_t>                               m_PixelState;
   std::array<std::vector<uint32_t>, NumberOfColours> m_ScanList;    // sorted
