@@ -718,35 +718,17 @@ public:
   {
     const LabelType label = m_Labels[p];
     uint32_t        member = 0;
-    bool            interior = true;
-    for (unsigned int k = 0; k < D; ++k)
+    for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
     {
-      interior = interior && idx[k] > 0 && idx[k] + 1 < static_cast<int64_t>(m_Grid.size[k]);
-    }
-    if (interior)
-    {
-      // no bounds to check: all 3^D neighbours are in the grid
-      for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
+      bool inside = true;
+      for (unsigned int k = 0; k < D; ++k)
       {
-        member |=
-          static_cast<uint32_t>(m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q])] == label)
-          << q;
+        const int64_t c = idx[k] + m_Offsets[q][k];
+        inside = inside && c >= 0 && c < static_cast<int64_t>(m_Grid.size[k]);
       }
-    }
-    else
-    {
-      for (unsigned int q = 0; q < NeighbourhoodSize; ++q)
+      if (inside && m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q])] == label)
       {
-        bool inside = true;
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          const int64_t c = idx[k] + m_Offsets[q][k];
-          inside = inside && c >= 0 && c < static_cast<int64_t>(m_Grid.size[k]);
-        }
-        if (inside && m_Labels[static_cast<size_t>(static_cast<int64_t>(p) + m_LinearOffsets[q])] == label)
-        {
-          member |= 1u << q;
-        }
+        member |= 1u << q;
       }
     }
     // the flood fill through face adjacency inside the neighbourhood, on bit sets (the CUDA kernels call it too)
@@ -829,8 +811,7 @@ public:
   }
 
 private:
-  static constexpr unsigned int NeighbourhoodSize = D == 2 ? 9 : 27;
-  static constexpr unsigned int Centre = NeighbourhoodSize / 2;
+  static constexpr unsigned int NeighbourhoodSize = Neighbourhood<D>::Size;
 
   static constexpr unsigned int NumberOfColours = 1u << D;
 
