@@ -335,6 +335,10 @@ CompactDualMesh(const Grid<D> &                                 grid,
   return mesh;
 }
 
+/** Whether the 3D dual mesh snaps boundary nodes to the box edges unless told otherwise (DualMeshFilter's default,
+ * and the registration's). */
+constexpr bool DefaultSnapToBoxEdges = true;
+
 /** The dual mesh (grid frame) of a label image given by its summary; itk::DualMeshFilter documents the node rules.
  * sitesGridFrame: D coordinates per cell (the site of cell c at D c, grid frame), used for the inner cells; nullptr
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
@@ -347,7 +351,7 @@ SimplexMesh<D>
 BuildDualMesh(const Grid<D> &      grid,
               const LabelSummary & summary,
               const double *       sitesGridFrame,
-              bool                 snapToBoxEdges = true,
+              bool                 snapToBoxEdges = DefaultSnapToBoxEdges,
               DualMeshStatistics * statistics = nullptr,
               MultiThreaderBase *  threader = nullptr)
 {

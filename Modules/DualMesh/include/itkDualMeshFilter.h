@@ -21,6 +21,7 @@
 #include "itkImageToMeshFilter.h"
 #include "itkMesh.h"
 #include "itkPointSet.h"
+#include "dmrDualMeshBuilder.h"
 #include "dmrSimplexMesh.h"
 
 namespace itk
@@ -149,7 +150,7 @@ protected:
 
 private:
   SimplexMeshType m_SimplexMesh;
-  bool            m_SnapToBoxEdges{ true };
+  bool            m_SnapToBoxEdges{ dmr::DefaultSnapToBoxEdges };
   SizeValueType   m_NumberOfSkippedConstraints{ 0 };
   SizeValueType   m_NumberOfBoundaryNodes{ 0 };
   SizeValueType   m_NumberOfInnerAdjacencyEdges{ 0 };

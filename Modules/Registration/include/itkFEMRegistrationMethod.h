@@ -463,7 +463,6 @@ private:
 
   typename DensityFilterType::Pointer     m_DensityFilter;
   typename CVTFilterType::Pointer         m_CVTFilter;
-  typename DualMeshFilterType::Pointer    m_DualMeshFilter;
   typename SolverType::Pointer            m_Solver;
   typename LabelImageType::Pointer        m_Labels;
   typename DisplacementFieldType::Pointer m_InverseDisplacementField;

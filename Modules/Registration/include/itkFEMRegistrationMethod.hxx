@@ -50,7 +50,6 @@ FEMRegistrationMethod<TF, TM, TD>::FEMRegistrationMethod()
   this->SetNthOutput(1, this->MakeOutput(1));
   m_DensityFilter = DensityFilterType::New();
   m_CVTFilter = CVTFilterType::New();
-  m_DualMeshFilter = DualMeshFilterType::New();
   m_Solver = SolverType::New();
   // The CVT filter reports progress inside its long loops (the contraction, the CPU sweeps), which take minutes on a
   // large CT at the first iteration: the registration passes each report on as its own ProgressEvent (at the current
@@ -415,12 +414,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       t0 = Clock::now();
       const dmr::LabelSummary summary =
         dmr::SummarizeLabels<D>(grid, m_Labels->GetBufferPointer(), m_NumberOfNodes, threader);
-      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(grid,
-                                                   summary,
-                                                   m_CVTFilter->GetCore().GetCentroids().data(),
-                                                   m_DualMeshFilter->GetSnapToBoxEdges(),
-                                                   nullptr,
-                                                   threader);
+      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
+        grid, summary, m_CVTFilter->GetCore().GetCentroids().data(), dmr::DefaultSnapToBoxEdges, nullptr, threader);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -1156,8 +1151,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       dmr::ThrowOnError(cvt.GetCells(masses, centroids), "CVT sites");
       dmr::ThrowOnError(summarizer.Summarize(D, grid.size.data(), cvt.DeviceLabels(), m_NumberOfNodes, summary),
                         "label summary");
-      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
-        grid, summary, centroids.data(), m_DualMeshFilter->GetSnapToBoxEdges(), nullptr, threader);
+      m_DynamicSimplexMesh =
+        dmr::BuildDualMesh<D>(grid, summary, centroids.data(), dmr::DefaultSnapToBoxEdges, nullptr, threader);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -1361,7 +1356,6 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "StopConditionDescription: " << m_StopConditionDescription << std::endl;
   itkPrintSelfObjectMacro(DensityFilter);
   itkPrintSelfObjectMacro(CVTFilter);
-  itkPrintSelfObjectMacro(DualMeshFilter);
   itkPrintSelfObjectMacro(Solver);
 }
 } // namespace itk
