@@ -337,3 +337,29 @@ TEST(BarycentricMap, MeshThatDoesNotCoverTheImageThrows)
   EXPECT_THROW(map.Build(grid, mesh, nullptr), itk::ExceptionObject);
 }
 } // namespace
+
+// GatherTerm rounds by the processor's conversion instruction where there is one: the same integers as llrint for
+// ties (to even), negative values, tiny and large terms up to the 2^62 that GatherQuantum allows
+TEST(BarycentricMap, GatherTermRoundsAsLlrint)
+{
+  std::mt19937                          rng(31);
+  std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+  std::uniform_real_distribution<float> force(-1000.0f, 1000.0f);
+  std::uniform_int_distribution<int>    exponent(-70, 50);
+  size_t                                ties = 0;
+  for (int trial = 0; trial < 200000; ++trial)
+  {
+    const bool   tie = trial % 7 == 0; // 1 x (k + 1/2) x 1
+    const float  w = tie ? 1.0f : unit(rng);
+    const float  f = tie ? std::floor(force(rng)) + 0.5f : force(rng);
+    const double inverse = std::ldexp(1.0, tie ? 0 : exponent(rng)); // a power of two, as GatherQuantum's
+    const double term = static_cast<double>(w) * static_cast<double>(f) * inverse;
+    ASSERT_EQ(itk::dmr::GatherTerm(w, f, inverse), llrint(term)) << w << " x " << f << " x " << inverse;
+    ties += term == std::floor(term) + 0.5;
+  }
+  EXPECT_GT(ties, 10000u);
+  for (const double big : { std::ldexp(1.0, 62) - 1024.0, -std::ldexp(1.0, 62) + 1024.0, 0.5, -0.5, 1.5, -2.5, -0.0 })
+  {
+    EXPECT_EQ(itk::dmr::GatherTerm(1.0f, 1.0f, big), llrint(big)) << big;
+  }
+}

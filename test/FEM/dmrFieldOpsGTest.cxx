@@ -363,3 +363,157 @@ TEST(ForEachPixel, GivesEveryPixelOfTheRangeWithItsIndex)
     EXPECT_EQ(next, range[1]);
   }
 }
+
+namespace
+{
+/** The corner loop as it was written with std::floor (before the truncation that replaced it), the reference for
+ * InterpolateAdd's sums. */
+template <unsigned int D, unsigned int NComp>
+void
+InterpolateAddWithFloor(const itk::dmr::Grid<D> & grid, const float * data, const double * cidx, double w, double * out)
+{
+  size_t base = 0, step[D];
+  double frac[D];
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    const double hi = static_cast<double>(grid.size[k] - 1);
+    const double c = cidx[k] < 0.0 ? 0.0 : (cidx[k] > hi ? hi : cidx[k]);
+    double       f = std::floor(c);
+    size_t       i = static_cast<size_t>(f);
+    if (i >= grid.size[k] - 1)
+    {
+      i = grid.size[k] > 1 ? grid.size[k] - 2 : 0;
+      f = static_cast<double>(i);
+    }
+    base += i * grid.stride[k];
+    step[k] = grid.size[k] > 1 ? grid.stride[k] : 0;
+    frac[k] = c - f;
+  }
+  for (unsigned int corner = 0; corner < (1u << D); ++corner)
+  {
+    double weight = w;
+    size_t offset = base;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      weight *= (corner & (1u << k)) ? frac[k] : 1.0 - frac[k];
+      offset += (corner & (1u << k)) ? step[k] : 0;
+    }
+    if (weight != 0.0)
+    {
+      for (unsigned int c = 0; c < NComp; ++c)
+      {
+        out[c] += weight * static_cast<double>(data[offset * NComp + c]);
+      }
+    }
+  }
+}
+} // namespace
+
+// The interpolation finds its cell by truncating the clamped continuous index, not by std::floor (which baseline x86-64
+// code evaluates slowly): the sums must be those of the floor version bit for bit, inside, on whole and half indices,
+// at -0, on and beyond the border, on axes of size 1 and 2
+TEST(InterpolateAdd, TruncationGivesTheFloorVersionsSumsBitForBit)
+{
+  std::mt19937                           rng(23);
+  std::uniform_real_distribution<float>  value(-3.0f, 3.0f);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const itk::dmr::Grid<3>                grids[] = {
+                   itk::dmr::Grid<3>(std::array<size_t, 3>{ 9, 6, 5 }, std::array<double, 3>{ 0.7, 1.1, 2.5 }),
+                   itk::dmr::Grid<3>(std::array<size_t, 3>{ 4, 1, 2 }, std::array<double, 3>{ 1.0, 1.0, 3.0 })
+  };
+  size_t compared = 0, onWholeIndex = 0;
+  for (const auto & grid : grids)
+  {
+    std::vector<float> data(grid.numberOfPixels * 3);
+    for (auto & x : data)
+    {
+      x = value(rng);
+    }
+    for (int trial = 0; trial < 20000; ++trial)
+    {
+      double c[3];
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        const double hi = static_cast<double>(grid.size[k] - 1);
+        const double x = -2.0 + (hi + 4.0) * unit(rng);
+        switch (trial % 6)
+        {
+          case 0:
+            c[k] = std::floor(x); // whole indices: zero weights
+            break;
+          case 1:
+            c[k] = std::floor(x) + 0.5;
+            break;
+          case 2:
+            c[k] = k == 0 ? -0.0 : x;
+            break;
+          case 3:
+            c[k] = k == 1 ? hi : x; // the last index, where the cell is clamped
+            break;
+          default:
+            c[k] = x;
+        }
+      }
+      onWholeIndex += trial % 6 == 0;
+      const double w = trial % 2 ? 1.0 : 0.37;
+      double       got[3] = { 0.25, -1.0, 0.0 }, expected[3] = { 0.25, -1.0, 0.0 };
+      itk::dmr::InterpolateAdd<3, 3>(grid, data.data(), c, w, got);
+      InterpolateAddWithFloor<3, 3>(grid, data.data(), c, w, expected);
+      ASSERT_EQ(std::memcmp(got, expected, sizeof(got)), 0)
+        << "trial " << trial << " at " << c[0] << ", " << c[1] << ", " << c[2];
+      ++compared;
+    }
+  }
+  EXPECT_EQ(compared, 40000u);
+  EXPECT_GT(onWholeIndex, 6000u);
+}
+
+// FieldBoundsInPixels divides the largest values by the spacing once instead of at every pixel; division by a positive
+// number keeps the order, so the bounds must equal the per-pixel definition exactly, for fields whose values span many
+// binades and spacings that are not powers of two, in 2D and 3D
+TEST(FieldMaxima, DividingOnceEqualsDividingAtEveryPixel)
+{
+  std::mt19937                           rng(29);
+  std::uniform_real_distribution<double> mantissa(-1.0, 1.0);
+  std::uniform_int_distribution<int>     binade(-20, 12);
+  auto                                   threader = TwoWorkUnits();
+  auto                                   check = [&](const auto & grid, const std::vector<float> & v) {
+    constexpr unsigned int D = std::remove_reference_t<decltype(grid)>::Dimension;
+    double                 displacement = 0.0, neighbourDifference = 0.0;
+    for (size_t p = 0; p < grid.numberOfPixels; ++p)
+    {
+      const auto idx = grid.Index(p);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        displacement = std::max(displacement, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+        if (idx[k] + 1 < static_cast<int64_t>(grid.size[k]))
+        {
+          for (unsigned int r = 0; r < D; ++r)
+          {
+            neighbourDifference =
+              std::max(neighbourDifference,
+                       std::abs(static_cast<double>(v[(p + grid.stride[k]) * D + r]) - v[p * D + r]) / grid.spacing[r]);
+          }
+        }
+      }
+    }
+    const auto bounds = itk::dmr::FieldBoundsInPixels<D>(grid, v.data(), threader);
+    EXPECT_EQ(bounds.displacement, displacement);
+    EXPECT_EQ(bounds.neighbourDifference, neighbourDifference);
+  };
+  for (int trial = 0; trial < 40; ++trial)
+  {
+    const itk::dmr::Grid<2> grid2(std::array<size_t, 2>{ 37, 29 }, std::array<double, 2>{ 0.703125, 1.0 / 3.0 });
+    const itk::dmr::Grid<3> grid3(std::array<size_t, 3>{ 11, 9, 7 }, std::array<double, 3>{ 0.977, 2.5, 1.0 / 7.0 });
+    std::vector<float>      v2(grid2.numberOfPixels * 2), v3(grid3.numberOfPixels * 3);
+    for (auto * v : { &v2, &v3 })
+    {
+      for (auto & x : *v)
+      {
+        x = static_cast<float>(std::ldexp(mantissa(rng), binade(rng)));
+      }
+    }
+    check(grid2, v2);
+    check(grid3, v3);
+  }
+}

@@ -167,22 +167,21 @@ public:
     // second pass: weights of the owning element, clamped to [0,1] and renormalised
     std::atomic<int64_t> uncovered{ -1 };
     ParallelForChunks(threader, n, [&](size_t b, size_t end) {
-      for (size_t p = b; p < end; ++p)
-      {
+      // the pixel index advanced pixel by pixel: no division per pixel
+      ForEachPixel(grid, b, end, [&](size_t p, const std::array<int64_t, D> & idx3) {
         const int32_t e = owner[p].load(std::memory_order_relaxed);
         if (e == std::numeric_limits<int32_t>::max())
         {
           uncovered.store(static_cast<int64_t>(p));
           m_Element[p] = -1;
-          continue;
+          return;
         }
         m_Element[p] = e;
         double         inv[D][D], x0[D];
         const double * a = affine.data() + e * affineSize;
         std::copy(a, a + D * D, &inv[0][0]);
         std::copy(a + D * D, a + affineSize, x0);
-        const auto idx3 = grid.Index(p);
-        int64_t    idx[D];
+        int64_t idx[D];
         for (unsigned int k = 0; k < D; ++k)
         {
           idx[k] = idx3[k];
@@ -199,7 +198,7 @@ public:
         {
           m_Weights[p * NumberOfVertices + v] = static_cast<float>(lambda[v] / sum);
         }
-      }
+      });
     });
     if (uncovered.load() >= 0)
     {

@@ -62,21 +62,28 @@ struct FieldBounds
 };
 
 /** FieldBounds of v in one pass, on the threader's work units when one is given (64 chunks; a maximum does not
- * depend on the order); 0 for no pixel. */
+ * depend on the order); 0 for no pixel. The pass keeps the largest |v_k| and |v_r(p + e_k) - v_r(p)| per component
+ * and divides by the spacing once at the end: a correctly rounded division by a positive number never reverses an
+ * order, so max_p fl(x_p / s) = fl(max_p x_p / s), the same value as dividing at every pixel. */
 template <unsigned int D>
 FieldBounds
 FieldBoundsInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * threader = nullptr)
 {
-  const size_t             nChunks = 64;
-  const size_t             chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
-  std::vector<FieldBounds> partial(nChunks);
+  struct Maxima
+  {
+    double displacement[D]{};        // max |v_k| per component k
+    double neighbourDifference[D]{}; // max |v_r(p + e_k) - v_r(p)| over the axes k, per component r
+  };
+  const size_t        nChunks = 64;
+  const size_t        chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  std::vector<Maxima> partial(nChunks);
   ParallelForChunkIds(threader, nChunks, [&](size_t c) {
     const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
-    FieldBounds  m;
+    Maxima       m;
     ForEachPixel(grid, std::min(end, c * chunk), end, [&](size_t p, const std::array<int64_t, D> & idx) {
       for (unsigned int k = 0; k < D; ++k)
       {
-        m.displacement = std::max(m.displacement, std::abs(static_cast<double>(v[p * D + k])) / grid.spacing[k]);
+        m.displacement[k] = std::max(m.displacement[k], std::abs(static_cast<double>(v[p * D + k])));
         if (idx[k] + 1 >= static_cast<int64_t>(grid.size[k]))
         {
           continue;
@@ -84,8 +91,8 @@ FieldBoundsInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * t
         const size_t q = p + grid.stride[k];
         for (unsigned int r = 0; r < D; ++r)
         {
-          m.neighbourDifference = std::max(
-            m.neighbourDifference, std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]) / grid.spacing[r]);
+          m.neighbourDifference[r] =
+            std::max(m.neighbourDifference[r], std::abs(static_cast<double>(v[q * D + r]) - v[p * D + r]));
         }
       }
     });
@@ -94,8 +101,11 @@ FieldBoundsInPixels(const Grid<D> & grid, const float * v, MultiThreaderBase * t
   FieldBounds bounds;
   for (const auto & m : partial)
   {
-    bounds.displacement = std::max(bounds.displacement, m.displacement);
-    bounds.neighbourDifference = std::max(bounds.neighbourDifference, m.neighbourDifference);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      bounds.displacement = std::max(bounds.displacement, m.displacement[k] / grid.spacing[k]);
+      bounds.neighbourDifference = std::max(bounds.neighbourDifference, m.neighbourDifference[k] / grid.spacing[k]);
+    }
   }
   return bounds;
 }
