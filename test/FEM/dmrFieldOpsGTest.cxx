@@ -517,3 +517,40 @@ TEST(FieldMaxima, DividingOnceEqualsDividingAtEveryPixel)
     check(grid3, v3);
   }
 }
+
+// the rasterisation's floor and ceil by truncation are std::floor and std::ceil (up to the sign of a zero result) for
+// whole and fractional values of every magnitude, both signs, around 2^52 and 2^63, infinities and NaN
+TEST(FloorByTruncation, EqualsStdFloorAndCeil)
+{
+  std::mt19937                           rng(37);
+  std::uniform_real_distribution<double> mantissa(-1.0, 1.0);
+  std::uniform_int_distribution<int>     binade(-30, 70);
+  std::vector<double>                    values = { 0.0,
+                                                    -0.0,
+                                                    0.5,
+                                                    -0.5,
+                                                    -1.0,
+                                                    1e-300,
+                                                    -1e-300,
+                                                    4503599627370495.5,
+                                                    -4503599627370495.5,
+                                                    4503599627370496.0,
+                                                    -4503599627370497.0,
+                                                    9223372036854775808.0,
+                                                    -9223372036854775808.0,
+                                                    1e300,
+                                                    std::numeric_limits<double>::infinity(),
+                                                    -std::numeric_limits<double>::infinity() };
+  for (int i = 0; i < 100000; ++i)
+  {
+    const double x = std::ldexp(mantissa(rng), binade(rng));
+    values.push_back(i % 3 == 0 ? std::floor(x) : x);
+  }
+  for (const double x : values)
+  {
+    ASSERT_EQ(itk::dmr::FloorByTruncation(x), std::floor(x)) << x;
+    ASSERT_EQ(itk::dmr::CeilByTruncation(x), std::ceil(x)) << x;
+  }
+  EXPECT_TRUE(std::isnan(itk::dmr::FloorByTruncation(std::nan(""))));
+  EXPECT_TRUE(std::isnan(itk::dmr::CeilByTruncation(std::nan(""))));
+}

@@ -54,10 +54,12 @@ public:
     m_Element.resize(n);
     m_Weights.resize(n * NumberOfVertices);
     std::unique_ptr<std::atomic<int32_t>[]> owner(new std::atomic<int32_t>[n]);
-    for (size_t p = 0; p < n; ++p)
-    {
-      owner[p].store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
-    }
+    ParallelForChunks(threader, n, [&](size_t b, size_t end) {
+      for (size_t p = b; p < end; ++p)
+      {
+        owner[p].store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
+      }
+    });
     const size_t nElements = mesh.elements.size();
     const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 4));
     const size_t chunk = (nElements + nChunks - 1) / nChunks;
@@ -117,11 +119,11 @@ public:
             const double at = static_cast<double>(lo[0]) + (-1e-9 - lambda[v]) / slope[v];
             if (slope[v] > 0.0)
             {
-              first = std::max(first, std::floor(at) - 1.0);
+              first = std::max(first, FloorByTruncation(at) - 1.0);
             }
             else
             {
-              last = std::min(last, std::ceil(at) + 1.0);
+              last = std::min(last, CeilByTruncation(at) + 1.0);
             }
           }
           const int64_t rowEnd = empty ? lo[0] - 1 : static_cast<int64_t>(last);
@@ -233,8 +235,9 @@ public:
         mn = std::min(mn, q);
         mx = std::max(mx, q);
       }
-      lo[k] = std::max<int64_t>(0, static_cast<int64_t>(std::ceil(mn - 1e-6)));
-      hi[k] = std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(std::floor(mx + 1e-6)));
+      lo[k] = std::max<int64_t>(0, static_cast<int64_t>(CeilByTruncation(mn - 1e-6)));
+      hi[k] =
+        std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(FloorByTruncation(mx + 1e-6)));
       if (lo[k] > hi[k])
       {
         lo[0] = 1;
