@@ -22,6 +22,9 @@
 #include "itkShrinkImageFilter.h"
 #include <array>
 #include <cmath>
+#include <cstring>
+#include <limits>
+#include <string>
 #include <tuple>
 #include <vector>
 #include "dmrObjectChecks.h"
@@ -1180,5 +1183,212 @@ TEST(DensityFieldFilter, GaussianCoefficientsOfLargeVariancesAreFinite)
   {
     ASSERT_TRUE(std::isfinite(filter->GetOutput()->GetBufferPointer()[p])) << "pixel " << p;
     ASSERT_GT(filter->GetOutput()->GetBufferPointer()[p], 0.0f) << "pixel " << p;
+  }
+}
+
+namespace
+{
+/** Runs the filter on (fixed, moving, field) three times: without a mask, where it takes two neighbouring pixels of a
+ * row at once wherever it can, and with the two checkerboard masks, where every unmasked pixel's row neighbours are
+ * masked, so it takes every pixel alone. Every pixel's grid-frame force and physical force must be the same floats
+ * (bit patterns, NaN included) whichever way it was computed. Returns the unmasked run. */
+template <unsigned int D>
+typename itk::DensityFieldFilter<itk::Image<float, D>>::Pointer
+ExpectPairsGiveTheSinglePixelsForce(
+  itk::Image<float, D> *                                                          fixed,
+  itk::Image<float, D> *                                                          moving,
+  typename itk::DensityFieldFilter<itk::Image<float, D>>::DisplacementFieldType * field,
+  unsigned int                                                                    levels,
+  itk::DynamicMeshRegistrationEnums::ForceGradient                                gradient =
+    itk::DynamicMeshRegistrationEnums::ForceGradient::WarpedMoving)
+{
+  using Image = itk::Image<float, D>;
+  using Filter = itk::DensityFieldFilter<Image>;
+  const auto   size = fixed->GetLargestPossibleRegion().GetSize();
+  const size_t n = fixed->GetLargestPossibleRegion().GetNumberOfPixels();
+  auto         parityOf = [&](size_t p) {
+    size_t sum = 0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      sum += p % size[k];
+      p /= size[k];
+    }
+    return sum % 2;
+  };
+  auto run = [&](int parity) {
+    auto filter = Filter::New();
+    filter->SetFixedImage(fixed);
+    filter->SetMovingImage(moving);
+    if (field)
+    {
+      filter->SetDisplacementField(field);
+    }
+    filter->SetNumberOfLevels(levels);
+    filter->SetForceGradient(gradient);
+    filter->SetUseFixedAlpha(true); // the force does not depend on alpha; a non-finite force would make it NaN
+    filter->SetAlpha(1.0);
+    if (parity >= 0)
+    {
+      auto mask = Filter::MaskImageType::New();
+      mask->CopyInformation(fixed);
+      mask->SetRegions(fixed->GetLargestPossibleRegion());
+      mask->Allocate();
+      for (size_t p = 0; p < n; ++p)
+      {
+        mask->GetBufferPointer()[p] = parityOf(p) == static_cast<size_t>(parity) ? 1 : 0;
+      }
+      filter->SetFixedMask(mask);
+    }
+    filter->Update();
+    return filter;
+  };
+  const auto whole = run(-1);
+  const auto singles = std::array<typename Filter::Pointer, 2>{ run(0), run(1) };
+  size_t     different = 0;
+  for (size_t p = 0; p < n; ++p)
+  {
+    Filter *   single = singles[parityOf(p)];
+    const bool gridSame =
+      std::memcmp(&whole->GetGridForce()[p * D], &single->GetGridForce()[p * D], D * sizeof(float)) == 0;
+    const bool physicalSame = std::memcmp(whole->GetForceField()->GetBufferPointer() + p,
+                                          single->GetForceField()->GetBufferPointer() + p,
+                                          sizeof(typename Filter::ForceFieldType::PixelType)) == 0;
+    if (!gridSame || !physicalSame)
+    {
+      ADD_FAILURE() << "pixel " << p << ": force " << whole->GetForceField()->GetBufferPointer()[p]
+                    << " with its neighbour, " << single->GetForceField()->GetBufferPointer()[p] << " alone";
+      if (++different == 5)
+      {
+        break;
+      }
+    }
+  }
+  return whole;
+}
+} // namespace
+
+TEST(DensityFieldFilter, PixelsTakenInPairsGetTheForceTheyGetAlone2D)
+{
+  // odd row length (a single pixel at the end of every row), anisotropic spacing, rotated directions, a moving image
+  // on another grid (and one on the fixed grid), and a field that is exactly 0 in a band (with the moving image on the
+  // fixed grid, positions on the grid: corners of weight 0)
+  const ImageType::SizeType size{ { 41, 33 } };
+  const auto                direction = itk::dmr::test::RotationDirection2D<ImageType>(0.3);
+  const auto                fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(0.9, 1.3), Origin(2, -1), direction, Blob(Origin(14, 18)));
+  const auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(0.9, 1.3), Origin(2, -1), direction, Blob(Origin(17, 16)));
+  const auto movingElsewhere =
+    itk::dmr::test::MakeImage<ImageType>(ImageType::SizeType{ { 37, 35 } },
+                                         Spacing(0.7, 1.1),
+                                         Origin(1.3, -0.4),
+                                         itk::dmr::test::RotationDirection2D<ImageType>(0.25),
+                                         Blob(Origin(17, 16)));
+  auto field = ConstantField(fixed, FieldType::PixelType(0.0f));
+  for (size_t p = 0; p < size[0] * size[1]; ++p)
+  {
+    const double x = static_cast<double>(p % size[0]), y = static_cast<double>(p / size[0]);
+    if (y > 10 && y < 20)
+    {
+      continue; // u = 0 in this band
+    }
+    field->GetBufferPointer()[p][0] = static_cast<float>(1.7 * std::sin(0.21 * x + 0.1 * y));
+    field->GetBufferPointer()[p][1] = static_cast<float>(-1.1 * std::cos(0.13 * x - 0.17 * y));
+  }
+  using Gradient = itk::DynamicMeshRegistrationEnums::ForceGradient;
+  for (const Gradient gradient : { Gradient::WarpedMoving, Gradient::MappedMoving })
+  {
+    for (const unsigned int levels : { 1u, 3u })
+    {
+      SCOPED_TRACE(std::to_string(levels) + " levels");
+      ExpectPairsGiveTheSinglePixelsForce<2>(fixed, moving, field, levels, gradient);
+      ExpectPairsGiveTheSinglePixelsForce<2>(fixed, moving, nullptr, levels, gradient);
+      ExpectPairsGiveTheSinglePixelsForce<2>(fixed, movingElsewhere, field, levels, gradient);
+    }
+  }
+}
+
+TEST(DensityFieldFilter, PixelsTakenInPairsGetTheForceTheyGetAlone3D)
+{
+  using Image3 = itk::Image<float, 3>;
+  using Field3 = itk::DensityFieldFilter<Image3>::DisplacementFieldType;
+  const Image3::SizeType size{ { 17, 12, 9 } };
+  Image3::SpacingType    spacing;
+  spacing[0] = 1.0;
+  spacing[1] = 1.2;
+  spacing[2] = 2.0;
+  Image3::PointType origin;
+  origin.Fill(0.0);
+  Image3::DirectionType direction;
+  direction.SetIdentity();
+  direction(0, 0) = direction(1, 1) = std::cos(0.2);
+  direction(0, 1) = -std::sin(0.2);
+  direction(1, 0) = std::sin(0.2);
+  auto blob3 = [](double cx, double cy, double cz) {
+    return [=](const Image3::PointType & p) {
+      const double r2 = (p[0] - cx) * (p[0] - cx) + (p[1] - cy) * (p[1] - cy) + (p[2] - cz) * (p[2] - cz);
+      return static_cast<float>(100.0 * std::exp(-r2 / (2.0 * 4.0 * 4.0)));
+    };
+  };
+  const auto          fixed = itk::dmr::test::MakeImage<Image3>(size, spacing, origin, direction, blob3(7, 8, 8));
+  const auto          moving = itk::dmr::test::MakeImage<Image3>(size, spacing, origin, direction, blob3(9, 7, 9));
+  Image3::SpacingType movingSpacing = spacing;
+  movingSpacing[2] = 1.7;
+  Image3::PointType movingOrigin = origin;
+  movingOrigin[0] = 0.35;
+  const auto movingElsewhere = itk::dmr::test::MakeImage<Image3>(
+    Image3::SizeType{ { 15, 13, 11 } }, movingSpacing, movingOrigin, direction, blob3(9, 7, 9));
+  auto field = Field3::New();
+  field->CopyInformation(fixed);
+  field->SetRegions(fixed->GetLargestPossibleRegion());
+  field->Allocate();
+  for (size_t p = 0; p < size[0] * size[1] * size[2]; ++p)
+  {
+    const double x = static_cast<double>(p % size[0]), y = static_cast<double>((p / size[0]) % size[1]),
+                 z = static_cast<double>(p / (size[0] * size[1]));
+    const bool zero = z > 3 && z < 6; // u = 0 in a slab
+    field->GetBufferPointer()[p][0] = zero ? 0.0f : static_cast<float>(1.3 * std::sin(0.3 * x + 0.2 * z));
+    field->GetBufferPointer()[p][1] = zero ? 0.0f : static_cast<float>(0.8 * std::cos(0.25 * y - 0.1 * x));
+    field->GetBufferPointer()[p][2] = zero ? 0.0f : static_cast<float>(-0.9 * std::sin(0.2 * z + 0.15 * y));
+  }
+  for (const unsigned int levels : { 1u, 3u })
+  {
+    ExpectPairsGiveTheSinglePixelsForce<3>(fixed, moving, field, levels);
+    ExpectPairsGiveTheSinglePixelsForce<3>(fixed, moving, nullptr, levels);
+    ExpectPairsGiveTheSinglePixelsForce<3>(fixed, movingElsewhere, field, levels);
+  }
+}
+
+TEST(DensityFieldFilter, PixelsTakenInPairsGetTheForceTheyGetAloneNextToAnInfiniteMovingPixel)
+{
+  // Without a field every position lies on the grid, so the corners of the next pixel have weight 0. The pixel two
+  // to the left of an infinite moving pixel reads, at weight 0, the infinite gradient of its right neighbour: alone
+  // it skips that corner, and a pair must give it the same finite force.
+  const ImageType::SizeType size{ { 24, 10 } };
+  const auto                identity = itk::dmr::test::RotationDirection2D<ImageType>(0.0);
+  const auto                fixed =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(11, 5)));
+  const auto moving =
+    itk::dmr::test::MakeImage<ImageType>(size, Spacing(1, 1), Origin(0, 0), identity, Blob(Origin(12, 4)));
+  for (const size_t column : { size_t{ 12 }, size_t{ 13 } }) // the pixel two to the left is a pair's first or second
+  {
+    SCOPED_TRACE("infinite pixel at column " + std::to_string(column));
+    const size_t       q = 5 * size[0] + column;
+    std::vector<float> copy(moving->GetBufferPointer(), moving->GetBufferPointer() + size[0] * size[1]);
+    copy[q] = std::numeric_limits<float>::infinity();
+    const auto infinite = itk::dmr::test::MakeImage<ImageType>(
+      size, Spacing(1, 1), Origin(0, 0), identity, [&](const ImageType::PointType & point) {
+        ImageType::IndexType index;
+        moving->TransformPhysicalPointToIndex(point, index);
+        return copy[static_cast<size_t>(index[1]) * size[0] + static_cast<size_t>(index[0])];
+      });
+    const auto whole = ExpectPairsGiveTheSinglePixelsForce<2>(fixed, infinite, nullptr, 1);
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      EXPECT_TRUE(std::isfinite(whole->GetGridForce()[(q - 2) * 2 + k])) << "the pixel two to the left of it";
+      EXPECT_FALSE(std::isfinite(whole->GetGridForce()[(q - 1) * 2 + k]) &&
+                   std::isfinite(whole->GetGridForce()[(q - 1) * 2 + 1 - k]))
+        << "its left neighbour reads its infinite gradient";
+    }
   }
 }

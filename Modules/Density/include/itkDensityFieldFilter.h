@@ -110,7 +110,8 @@ public:
   itkGetInputMacro(FixedMask, MaskImageType);
 
   /** Number of pyramid levels summed in the MSSD (paper 5.1: 3). */
-  itkSetClampMacro(NumberOfLevels, unsigned int, 1, 8);
+  static constexpr unsigned int MaximumNumberOfLevels = 8;
+  itkSetClampMacro(NumberOfLevels, unsigned int, 1, MaximumNumberOfLevels);
   itkGetConstMacro(NumberOfLevels, unsigned int);
   /** alpha = AlphaFactor x mean |f|^2 (paper 5.1: 0.1). Ignored when UseFixedAlpha is on. */
   itkSetClampMacro(AlphaFactor, double, 0.0, NumericTraits<double>::max());

@@ -25,6 +25,7 @@
 #include "itkImageAlgorithm.h"
 #include "itkProgressReporter.h"
 #include "dmrImageMetrics.h"
+#include "dmrDoublePair.h"
 #include <cmath>
 #include <numeric>
 
@@ -532,6 +533,239 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   const size_t         chunk = std::max<size_t>(4096, n / 64 + 1);
   const size_t         nChunks = (n + chunk - 1) / chunk;
   std::vector<Partial> partial(nChunks);
+  // the end of a pixel: |f|^2, the outputs, and the sums in pixel order
+  auto finishPixel = [&](size_t p, const double(&f)[D], Partial & acc) {
+    double f2 = 0.0;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      f2 += f[k] * f[k];
+      gridForce[p * D + k] = static_cast<float>(f[k]);
+      double phys = 0.0;
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        phys += dirF[k][j] * f[j];
+      }
+      if (forceBuffer)
+      {
+        forceBuffer[p][k] = static_cast<typename ForceFieldType::PixelType::ValueType>(phys);
+      }
+    }
+    densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(f2);
+    acc.f2 += f2;
+  };
+  auto maskedPixel = [&](size_t p) {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      gridForce[p * D + k] = 0.0f;
+      if (forceBuffer)
+      {
+        forceBuffer[p][k] = 0;
+      }
+    }
+    densityBuffer[p] = 0;
+  };
+  auto pixel = [&](size_t p, const std::array<int64_t, D> & idx, Partial & acc) {
+    if (maskBuffer && maskBuffer[p] == 0)
+    {
+      maskedPixel(p);
+      return;
+    }
+    ++acc.inside;
+    double u[D] = {};
+    if (fieldBuffer)
+    {
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        u[k] = fieldBuffer[p][k];
+      }
+    }
+    // WarpedMoving: grad_x S(W(x)) = (I + grad u)^T (grad S)(W(x)); Jt[j][k] = delta_jk + d u_k / d x_j in the
+    // fixed grid frame (u_k = sum_m Direction[m][k] u_m), per mm.
+    double Jt[D][D];
+    dmr::WarpJacobianTranspose<D>(grid, idx, p, warpedGradient ? fieldBuffer : nullptr, dirF, Jt);
+    double f[D] = {};
+    for (unsigned int l = 0; l < nLevels; ++l)
+    {
+      const PyramidLevel & L = levels[l];
+      double               cm[D];
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        cm[r] = L.Mc[r];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
+        }
+      }
+      // level 0 is the fixed image itself
+      const double t =
+        l == 0 ? static_cast<double>(L.fixed[p]) : (fixedAtFine.empty() ? fixedLevelAt(L, idx) : fixedAtFine[l - 1][p]);
+      double s = 0.0, g[D] = {};
+      dmr::InterpolateAddPair<D, 1, D>(L.movingGrid, L.moving.data(), L.movingGradient.data(), cm, 1.0, &s, g);
+      const double residual = t - s;
+      acc.mssd += levelWeight[l] * residual * residual;
+      if (l == 0)
+      {
+        acc.ssd += residual * residual;
+      }
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        double gj = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          gj += Jt[j][k] * g[k];
+        }
+        f[j] += 2.0 * residual * gj; // paper Eq. 5
+      }
+    }
+    finishPixel(p, f, acc);
+  };
+#if DMR_HAVE_DOUBLE_PAIR
+  // Two neighbouring pixels of a row at once: the operations of `pixel` in the two lanes of SSE2 registers, so the
+  // same doubles bit for bit. The pair also adds the corners of weight 0 (ForEachInterpolationCornerPair), which
+  // changes a sum only where such a corner holds a non-finite value; then the pixel's result is not finite, and
+  // `pixel` computes that pixel again (as it does any pixel whose pair result is not finite).
+  bool pairs = nLevels == 1 || !fixedAtFine.empty();
+  for (unsigned int l = 0; l < nLevels; ++l)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      pairs = pairs && levels[l].movingGrid.size[k] < (size_t(1) << 31);
+    }
+  }
+  auto pixelPair = [&](size_t p, const std::array<int64_t, D> & idx, Partial & acc) {
+    using dmr::DoublePair;
+    DoublePair u[D], index[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      u[k] = fieldBuffer ? DoublePair::OfFloats(fieldBuffer[p][k], fieldBuffer[p + 1][k]) : DoublePair::Both(0.0);
+      index[k] = DoublePair::Of(static_cast<double>(idx[k]), static_cast<double>(idx[k] + (k == 0 ? 1 : 0)));
+    }
+    DoublePair Jt[D][D], f[D];
+    bool       interior = idx[0] > 0 && idx[0] + 2 < static_cast<int64_t>(grid.size[0]);
+    for (unsigned int k = 1; k < D; ++k)
+    {
+      interior = interior && idx[k] > 0 && idx[k] + 1 < static_cast<int64_t>(grid.size[k]);
+    }
+    if (warpedGradient && fieldBuffer && interior)
+    {
+      // WarpJacobianTranspose's operations with central differences on every axis (both pixels are interior)
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        const size_t     stride = grid.stride[j];
+        const DoublePair h = DoublePair::Both(2.0 * grid.spacing[j]);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          DoublePair du = DoublePair::Both(0.0);
+          for (unsigned int m = 0; m < D; ++m)
+          {
+            du += DoublePair::Both(dirF[m][k]) *
+                  (DoublePair::OfFloats(fieldBuffer[p + stride][m], fieldBuffer[p + 1 + stride][m]) -
+                   DoublePair::OfFloats(fieldBuffer[p - stride][m], fieldBuffer[p + 1 - stride][m]));
+          }
+          Jt[j][k] = DoublePair::Both(j == k ? 1.0 : 0.0) + du / h;
+        }
+      }
+    }
+    else
+    {
+      double                 Jt0[D][D], Jt1[D][D];
+      std::array<int64_t, D> idx1 = idx;
+      ++idx1[0];
+      dmr::WarpJacobianTranspose<D>(grid, idx, p, warpedGradient ? fieldBuffer : nullptr, dirF, Jt0);
+      dmr::WarpJacobianTranspose<D>(grid, idx1, p + 1, warpedGradient ? fieldBuffer : nullptr, dirF, Jt1);
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          Jt[j][k] = DoublePair::Of(Jt0[j][k], Jt1[j][k]);
+        }
+      }
+    }
+    for (unsigned int j = 0; j < D; ++j)
+    {
+      f[j] = DoublePair::Both(0.0);
+    }
+    const DoublePair two = DoublePair::Both(2.0);
+    double           mssdTerms[2][MaximumNumberOfLevels], ssdTerms[2] = { 0.0, 0.0 };
+    for (unsigned int l = 0; l < nLevels; ++l)
+    {
+      const PyramidLevel & L = levels[l];
+      DoublePair           cm[D];
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        cm[r] = DoublePair::Both(L.Mc[r]);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          cm[r] += DoublePair::Both(L.MA[r][k]) * index[k] + DoublePair::Both(L.MB[r][k]) * u[k];
+        }
+      }
+      const DoublePair t =
+        l == 0 ? DoublePair::OfFloats(L.fixed[p], L.fixed[p + 1]) : DoublePair::Load(fixedAtFine[l - 1].data() + p);
+      DoublePair s = DoublePair::Both(0.0), g[D];
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        g[k] = DoublePair::Both(0.0);
+      }
+      const float * moving = L.moving.data();
+      const float * gradient = L.movingGradient.data();
+      dmr::ForEachInterpolationCornerPair<D>(L.movingGrid, cm, [&](size_t o0, size_t o1, DoublePair w) {
+        s += w * DoublePair::OfFloats(moving[o0], moving[o1]);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          g[k] += w * DoublePair::OfFloats(gradient[o0 * D + k], gradient[o1 * D + k]);
+        }
+      });
+      const DoublePair residual = t - s;
+      // the sums take lane 0's terms before lane 1's, as the pixel loop would: kept per level
+      const DoublePair term = DoublePair::Both(levelWeight[l]) * residual * residual;
+      mssdTerms[0][l] = term.Lane0();
+      mssdTerms[1][l] = term.Lane1();
+      if (l == 0)
+      {
+        const DoublePair square = residual * residual;
+        ssdTerms[0] = square.Lane0();
+        ssdTerms[1] = square.Lane1();
+      }
+      for (unsigned int j = 0; j < D; ++j)
+      {
+        DoublePair gj = DoublePair::Both(0.0);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          gj += Jt[j][k] * g[k];
+        }
+        f[j] += two * residual * gj;
+      }
+    }
+    for (unsigned int lane = 0; lane < 2; ++lane)
+    {
+      double fl[D];
+      bool   finite = std::isfinite(ssdTerms[lane]);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        fl[k] = lane == 0 ? f[k].Lane0() : f[k].Lane1();
+        finite = finite && std::isfinite(fl[k]);
+      }
+      for (unsigned int l = 0; l < nLevels; ++l)
+      {
+        finite = finite && std::isfinite(mssdTerms[lane][l]);
+      }
+      if (!finite)
+      {
+        std::array<int64_t, D> laneIdx = idx;
+        laneIdx[0] += lane;
+        pixel(p + lane, laneIdx, acc);
+        continue;
+      }
+      ++acc.inside;
+      for (unsigned int l = 0; l < nLevels; ++l)
+      {
+        acc.mssd += mssdTerms[lane][l];
+      }
+      acc.ssd += ssdTerms[lane];
+      finishPixel(p + lane, fl, acc);
+    }
+  };
+#endif
   dmr::ParallelForChunks(
     this->GetMultiThreader(),
     nChunks,
@@ -539,86 +773,46 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
       for (size_t c = cBegin; c < cEnd; ++c)
       {
         Partial      acc;
+        const size_t pBegin = c * chunk;
         const size_t pEnd = std::min(n, (c + 1) * chunk);
-        dmr::ForEachPixel(grid, c * chunk, pEnd, [&](size_t p, const std::array<int64_t, D> & idx) {
-          if (maskBuffer && maskBuffer[p] == 0)
+#if DMR_HAVE_DOUBLE_PAIR
+        if (pairs)
+        {
+          // rows of the chunk in pixel order; two pixels at once where both are in the row, the chunk and the mask
+          std::array<int64_t, D> idx = grid.Index(pBegin);
+          const int64_t          rowSize = static_cast<int64_t>(grid.size[0]);
+          for (size_t p = pBegin; p < pEnd;)
           {
-            for (unsigned int k = 0; k < D; ++k)
+            if (maskBuffer && maskBuffer[p] == 0)
             {
-              gridForce[p * D + k] = 0.0f;
-              if (forceBuffer)
-              {
-                forceBuffer[p][k] = 0;
-              }
+              maskedPixel(p);
+              ++p;
+              ++idx[0];
             }
-            densityBuffer[p] = 0;
-            return;
-          }
-          ++acc.inside;
-          double u[D] = {};
-          if (fieldBuffer)
-          {
-            for (unsigned int k = 0; k < D; ++k)
+            else if (idx[0] + 1 < rowSize && p + 1 < pEnd && !(maskBuffer && maskBuffer[p + 1] == 0))
             {
-              u[k] = fieldBuffer[p][k];
+              pixelPair(p, idx, acc);
+              p += 2;
+              idx[0] += 2;
             }
-          }
-          // WarpedMoving: grad_x S(W(x)) = (I + grad u)^T (grad S)(W(x)); Jt[j][k] = delta_jk + d u_k / d x_j in the
-          // fixed grid frame (u_k = sum_m Direction[m][k] u_m), per mm.
-          double Jt[D][D];
-          dmr::WarpJacobianTranspose<D>(grid, idx, p, warpedGradient ? fieldBuffer : nullptr, dirF, Jt);
-          double f[D] = {};
-          for (unsigned int l = 0; l < nLevels; ++l)
-          {
-            const PyramidLevel & L = levels[l];
-            double               cm[D];
-            for (unsigned int r = 0; r < D; ++r)
+            else
             {
-              cm[r] = L.Mc[r];
-              for (unsigned int k = 0; k < D; ++k)
-              {
-                cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
-              }
+              pixel(p, idx, acc);
+              ++p;
+              ++idx[0];
             }
-            // level 0 is the fixed image itself
-            const double t = l == 0 ? static_cast<double>(L.fixed[p])
-                                    : (fixedAtFine.empty() ? fixedLevelAt(L, idx) : fixedAtFine[l - 1][p]);
-            double       s = 0.0, g[D] = {};
-            dmr::InterpolateAddPair<D, 1, D>(L.movingGrid, L.moving.data(), L.movingGradient.data(), cm, 1.0, &s, g);
-            const double residual = t - s;
-            acc.mssd += levelWeight[l] * residual * residual;
-            if (l == 0)
+            for (unsigned int k = 0; k + 1 < D && idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
             {
-              acc.ssd += residual * residual;
-            }
-            for (unsigned int j = 0; j < D; ++j)
-            {
-              double gj = 0.0;
-              for (unsigned int k = 0; k < D; ++k)
-              {
-                gj += Jt[j][k] * g[k];
-              }
-              f[j] += 2.0 * residual * gj; // paper Eq. 5
+              idx[k] = 0;
+              ++idx[k + 1];
             }
           }
-          double f2 = 0.0;
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            f2 += f[k] * f[k];
-            gridForce[p * D + k] = static_cast<float>(f[k]);
-            double phys = 0.0;
-            for (unsigned int j = 0; j < D; ++j)
-            {
-              phys += dirF[k][j] * f[j];
-            }
-            if (forceBuffer)
-            {
-              forceBuffer[p][k] = static_cast<typename ForceFieldType::PixelType::ValueType>(phys);
-            }
-          }
-          densityBuffer[p] = static_cast<typename DensityImageType::PixelType>(f2);
-          acc.f2 += f2;
-        });
+          partial[c] = acc;
+          continue;
+        }
+#endif
+        dmr::ForEachPixel(
+          grid, pBegin, pEnd, [&](size_t p, const std::array<int64_t, D> & idx) { pixel(p, idx, acc); });
         partial[c] = acc;
       }
     },
