@@ -404,23 +404,31 @@ TEST(DiscreteCVT, SetStateContinuesTheSweepsOfTheStateItTakes)
 
 TEST(DiscreteCVT, ResultDoesNotDependOnTheThreader)
 {
-  // large enough (160x160) for the proposal and energy loops to be split into several chunks
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 160, 160 }, std::array<double, 2>{ 1.0, 1.0 });
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
-  auto                    threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(2);
-  itk::dmr::DiscreteCVT<2> serial, parallel;
-  serial.SetDensity(grid, density.data(), nullptr);
-  parallel.SetDensity(grid, density.data(), threader);
-  serial.ContractionInitialize(40, 4);
-  parallel.ContractionInitialize(40, 4);
-  const auto a = serial.Optimize(0.0, 5);
-  const auto b = parallel.Optimize(0.0, 5);
-  EXPECT_GT(a.swaps, 0u);
-  EXPECT_EQ(a.swaps, b.swaps);
-  EXPECT_EQ(serial.GetLabels(), parallel.GetLabels());
-  EXPECT_DOUBLE_EQ(serial.GetEnergy(), parallel.GetEnergy());
+  // 160x160, 40 cells, 5 sweeps: the proposal and energy loops are split into several chunks. 320x320, 150 cells, to
+  // convergence: the active scan lists (about 4000 pixels per colour at first, fewer later) are split in two while
+  // they hold at least 2048 pixels, and scanned in one piece below that.
+  for (const auto & [side, cells, sweeps] :
+       { std::tuple<size_t, size_t, size_t>{ 160, 40, 5 }, std::tuple<size_t, size_t, size_t>{ 320, 150, 1000 } })
+  {
+    SCOPED_TRACE(std::to_string(side) + " x " + std::to_string(side));
+    const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ side, side }, std::array<double, 2>{ 1.0, 1.0 });
+    const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
+    auto                    threader = itk::MultiThreaderBase::New();
+    threader->SetMaximumNumberOfThreads(2);
+    threader->SetNumberOfWorkUnits(2);
+    itk::dmr::DiscreteCVT<2> serial, parallel;
+    serial.SetDensity(grid, density.data(), nullptr);
+    parallel.SetDensity(grid, density.data(), threader);
+    serial.ContractionInitialize(cells, 4);
+    parallel.ContractionInitialize(cells, 4);
+    const auto a = serial.Optimize(0.0, sweeps);
+    const auto b = parallel.Optimize(0.0, sweeps);
+    EXPECT_GT(a.swaps, 0u);
+    EXPECT_EQ(a.sweeps, b.sweeps);
+    EXPECT_EQ(a.swaps, b.swaps);
+    EXPECT_EQ(serial.GetLabels(), parallel.GetLabels());
+    EXPECT_EQ(serial.GetEnergy(), parallel.GetEnergy());
+  }
 }
 
 /** A density like the registration's: a sharp ridge along a sphere (a circle in 2D) of the given radius, centred in

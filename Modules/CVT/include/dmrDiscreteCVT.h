@@ -1275,7 +1275,7 @@ private:
       pending.clear();
     }
     const size_t n = list.size();
-    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 8192));
+    const size_t nChunks = n >= 2048 ? std::max<size_t>(2, std::min<size_t>(64, n / 8192)) : 1;
     const size_t chunk = (n + nChunks - 1) / nChunks;
     if (m_ChunkProposals.size() < nChunks)
     {
