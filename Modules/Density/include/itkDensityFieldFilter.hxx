@@ -624,7 +624,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
   // same doubles bit for bit. The pair also adds the corners of weight 0 (ForEachInterpolationCornerPair), which
   // changes a sum only where such a corner holds a non-finite value; then the pixel's result is not finite, and
   // `pixel` computes that pixel again (as it does any pixel whose pair result is not finite).
-  bool pairs = nLevels == 1 || !fixedAtFine.empty();
+  bool pairs = true;
   for (unsigned int l = 0; l < nLevels; ++l)
   {
     for (unsigned int k = 0; k < D; ++k)
@@ -699,8 +699,21 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
           cm[r] += DoublePair::Both(L.MA[r][k]) * index[k] + DoublePair::Both(L.MB[r][k]) * u[k];
         }
       }
-      const DoublePair t =
-        l == 0 ? DoublePair::OfFloats(L.fixed[p], L.fixed[p + 1]) : DoublePair::Load(fixedAtFine[l - 1].data() + p);
+      DoublePair t;
+      if (l == 0)
+      {
+        t = DoublePair::OfFloats(L.fixed[p], L.fixed[p + 1]);
+      }
+      else if (!fixedAtFine.empty())
+      {
+        t = DoublePair::Load(fixedAtFine[l - 1].data() + p);
+      }
+      else
+      {
+        std::array<int64_t, D> idx1 = idx;
+        ++idx1[0];
+        t = DoublePair::Of(fixedLevelAt(L, idx), fixedLevelAt(L, idx1));
+      }
       DoublePair s = DoublePair::Both(0.0), g[D];
       for (unsigned int k = 0; k < D; ++k)
       {
