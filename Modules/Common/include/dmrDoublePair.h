@@ -21,12 +21,13 @@
 #include "dmrGrid.h"
 
 #include <cstdint>
-#include <limits>
 
 // Two doubles in one SSE2 register, for the CPU loops that treat two neighbouring pixels at once. Every operation is
-// the IEEE operation of the scalar code in each lane (addpd, subpd, mulpd, the compares), so a loop written on
-// DoublePair gives every pixel the doubles of its scalar version, bit for bit. Only where SSE2 is there (every x86-64
-// host); elsewhere DMR_HAVE_DOUBLE_PAIR is 0 and the callers keep their scalar loops (a build may also set it to 0).
+// the IEEE operation of the scalar code in each lane (addpd, subpd, mulpd, divpd, the compares), so a loop written on
+// DoublePair gives every pixel the doubles of its scalar version, bit for bit (as long as the compiler does not fuse
+// a * b + c into one rounding, which baseline x86-64 code cannot; the tests comparing pairs with single pixels would
+// show it). Only where SSE2 is there (every x86-64 host); elsewhere DMR_HAVE_DOUBLE_PAIR is 0 and the callers keep
+// their scalar loops (a build may also set it to 0).
 #ifndef DMR_HAVE_DOUBLE_PAIR
 #if (defined(__SSE2__) || defined(_M_X64)) && !defined(__CUDACC__)
 #define DMR_HAVE_DOUBLE_PAIR 1
