@@ -101,7 +101,7 @@ struct Options
   double      energyRatio{ 0.02 }, alphaFactor{ 0.1 };
   std::string forceGradient{ "warped" };
   long        stepHalvings{ 5 };
-  long        deviceSolveMinDofs{ 300 };
+  long        deviceSolveMinDofs{ 301 };
   long        directSolveMaxDofs{ 300 };
   double      femTolerance{ 1e-6 };
   std::string fixedMask, fixedLandmarks, movingLandmarks, truthDisplacement, initialTransform;
@@ -141,7 +141,8 @@ const char * const Usage =
   "  --threads T            worker threads (default: all cores)\n"
   "  --backend B            auto (default) | cpu | cuda\n"
   "  --device-solve-min-dofs N  cuda back-end: solve the elastic system on the GPU when it has at least N free\n"
-  "                         unknowns, on the CPU otherwise (default 300; 0: always on the GPU)\n"
+  "                         unknowns, on the CPU otherwise (default 301: the systems --direct-solve-max-dofs does\n"
+  "                         not factorise; 0: always on the GPU)\n"
   "  --save-mesh-every K    also write the mesh every K iterations (first and last are always written)\n"
   "  --inverse              also write inverse-displacement.nii.gz, the inverse transformation (on the fixed grid:\n"
   "                         a moving point y maps to the fixed point y + v(y)), carried along the iterations as\n"

@@ -107,6 +107,10 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, ReinitializationInterval, 3u);
   DMR_EXPECT_SET_GET(method, SolverTolerance, 1e-8);
   EXPECT_EQ(method->GetDirectSolverMaximumDegreesOfFreedom(), 300u); // the default
+  // at the defaults no system is both factorised by the CPU back-end and solved by CG on the device: the CUDA back-end
+  // solves on the device only systems that the CPU back-end solves by CG too
+  EXPECT_GT(method->GetDeviceSolverMinimumDegreesOfFreedom(), method->GetDirectSolverMaximumDegreesOfFreedom());
+  DMR_EXPECT_SET_GET(method, DeviceSolverMinimumDegreesOfFreedom, 0u);
   DMR_EXPECT_SET_GET(method, DirectSolverMaximumDegreesOfFreedom, 40u);
   DMR_EXPECT_SET_GET(method, ComputeInverse, true);
   EXPECT_FALSE(method->GetGPUOrderSolve()); // the default

@@ -246,7 +246,9 @@ public:
    * (matrix-free Jacobi-preconditioned conjugate gradients, RegistrationContext::SolveElasticity, to the CPU solver's
    * tolerance; a solve that does not converge falls back to the CPU solver); smaller ones are assembled and solved on
    * the CPU, where they are faster (about 100 conjugate-gradient products of a few hundred unknowns cost less than the
-   * kernel launches; crossover measured in docs/benchmarks.md). 0: always on the device. Default 300. */
+   * kernel launches; crossover measured in docs/benchmarks.md). 0: always on the device. Default 301: the systems
+   * above DirectSolverMaximumDegreesOfFreedom's default (300), which the CPU back-end solves by conjugate gradients
+   * too; the ones it factorises are factorised by both back-ends. */
   itkSetMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
   itkGetConstMacro(DeviceSolverMinimumDegreesOfFreedom, SizeValueType);
   /** CUDA back-end: the most conjugate-gradient products one device solve may take before it gives up and the CPU
@@ -447,7 +449,7 @@ private:
   size_t            m_DevicePeakBytes{ 0 };
   size_t            m_DeviceUsedAtPeakBytes{ 0 };
   double            m_SolverTolerance{ 1e-6 };
-  SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 300 };
+  SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 301 };
   SizeValueType     m_DirectSolverMaximumDegreesOfFreedom{ 300 };
   bool              m_GPUOrderSolve{ false };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
