@@ -39,6 +39,21 @@
 #include <emmintrin.h>
 #endif
 
+namespace itk
+{
+namespace dmr
+{
+/** x as a T: the double itself, or (DoublePair) x in both lanes; for the formulas written once for one pixel and for
+ * a pair. */
+template <typename T>
+inline T
+Broadcast(double x)
+{
+  return x;
+}
+} // namespace dmr
+} // namespace itk
+
 #if DMR_HAVE_DOUBLE_PAIR
 namespace itk
 {
@@ -88,6 +103,13 @@ struct DoublePair
     return *this;
   }
 };
+
+template <>
+inline DoublePair
+Broadcast<DoublePair>(double x)
+{
+  return DoublePair::Both(x);
+}
 
 inline DoublePair
 operator+(DoublePair a, DoublePair b)

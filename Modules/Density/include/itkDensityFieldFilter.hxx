@@ -196,6 +196,39 @@ GradientInto(MultiThreaderBase *        threader,
   });
 }
 
+/** A moving level's continuous index of a pixel (T = double) or of two (T = DoublePair), the same operations:
+ * cm_r = Mc_r + sum_k (MA_rk index_k + MB_rk u_k), index the fine pixel's index, u its displacement (physical). */
+template <unsigned int D, typename T, typename TLevel>
+inline void
+MovingLevelIndex(const TLevel & L, const T (&index)[D], const T (&u)[D], T (&cm)[D])
+{
+  for (unsigned int r = 0; r < D; ++r)
+  {
+    cm[r] = Broadcast<T>(L.Mc[r]);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      cm[r] += Broadcast<T>(L.MA[r][k]) * index[k] + Broadcast<T>(L.MB[r][k]) * u[k];
+    }
+  }
+}
+
+/** One level's term of paper Eq. 5 added to the force of a pixel (T = double) or of two (T = DoublePair), the same
+ * operations: f_j += 2 residual (Jt g)_j, g the moving level's gradient at the warped position. */
+template <unsigned int D, typename T>
+inline void
+AddLevelForce(const T & residual, const T (&Jt)[D][D], const T (&g)[D], T (&f)[D])
+{
+  for (unsigned int j = 0; j < D; ++j)
+  {
+    T gj = Broadcast<T>(0.0);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      gj += Jt[j][k] * g[k];
+    }
+    f[j] += Broadcast<T>(2.0) * residual * gj;
+  }
+}
+
 /** Jt[j][k] = delta_jk + d u_k / d x_j at pixel p (index idx), the transpose of the Jacobian of W(x) = x + u(x) in
  * the grid frame of `grid` (per mm; central differences, one-sided at the border). u is a physical-frame vector field
  * on the grid (nullptr: identity), rotated into the grid frame by the direction matrix. */
@@ -583,19 +616,16 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
     // fixed grid frame (u_k = sum_m Direction[m][k] u_m), per mm.
     double Jt[D][D];
     dmr::WarpJacobianTranspose<D>(grid, idx, p, warpedGradient ? fieldBuffer : nullptr, dirF, Jt);
-    double f[D] = {};
+    double f[D] = {}, index[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      index[k] = static_cast<double>(idx[k]);
+    }
     for (unsigned int l = 0; l < nLevels; ++l)
     {
       const PyramidLevel & L = levels[l];
       double               cm[D];
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        cm[r] = L.Mc[r];
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          cm[r] += L.MA[r][k] * static_cast<double>(idx[k]) + L.MB[r][k] * u[k];
-        }
-      }
+      dmr::MovingLevelIndex<D>(L, index, u, cm);
       // level 0 is the fixed image itself
       const double t =
         l == 0 ? static_cast<double>(L.fixed[p]) : (fixedAtFine.empty() ? fixedLevelAt(L, idx) : fixedAtFine[l - 1][p]);
@@ -607,15 +637,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
       {
         acc.ssd += residual * residual;
       }
-      for (unsigned int j = 0; j < D; ++j)
-      {
-        double gj = 0.0;
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          gj += Jt[j][k] * g[k];
-        }
-        f[j] += 2.0 * residual * gj; // paper Eq. 5
-      }
+      dmr::AddLevelForce<D>(residual, Jt, g, f); // paper Eq. 5
     }
     finishPixel(p, f, acc);
   };
@@ -685,20 +707,12 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
     {
       f[j] = DoublePair::Both(0.0);
     }
-    const DoublePair two = DoublePair::Both(2.0);
-    double           mssdTerms[2][MaximumNumberOfLevels], ssdTerms[2] = { 0.0, 0.0 };
+    double mssdTerms[2][MaximumNumberOfLevels], ssdTerms[2] = { 0.0, 0.0 };
     for (unsigned int l = 0; l < nLevels; ++l)
     {
       const PyramidLevel & L = levels[l];
       DoublePair           cm[D];
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        cm[r] = DoublePair::Both(L.Mc[r]);
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          cm[r] += DoublePair::Both(L.MA[r][k]) * index[k] + DoublePair::Both(L.MB[r][k]) * u[k];
-        }
-      }
+      dmr::MovingLevelIndex<D>(L, index, u, cm);
       DoublePair t;
       if (l == 0)
       {
@@ -739,15 +753,7 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
         ssdTerms[0] = square.Lane0();
         ssdTerms[1] = square.Lane1();
       }
-      for (unsigned int j = 0; j < D; ++j)
-      {
-        DoublePair gj = DoublePair::Both(0.0);
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          gj += Jt[j][k] * g[k];
-        }
-        f[j] += two * residual * gj;
-      }
+      dmr::AddLevelForce<D>(residual, Jt, g, f);
     }
     for (unsigned int lane = 0; lane < 2; ++lane)
     {
