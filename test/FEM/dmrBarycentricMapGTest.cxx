@@ -170,6 +170,36 @@ TEST(BarycentricMap, EveryVoxelLiesInOneElementOfTheDualMesh3D)
   CheckEveryPixelLiesInOneElement<3>(phantom.GetGrid(), phantom.GetMesh());
 }
 
+// The threads rasterise bands of planes; the owners and weights must not depend on how many bands there are.
+template <unsigned int D>
+void
+CheckBuildDoesNotDependOnTheThreads(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
+{
+  itk::dmr::BarycentricMap<D> serial;
+  serial.Build(grid, mesh, nullptr);
+  for (unsigned int units : { 2u, 3u, 7u, 64u })
+  {
+    auto threader = itk::MultiThreaderBase::New();
+    threader->SetMaximumNumberOfThreads(std::min(units, 8u));
+    threader->SetNumberOfWorkUnits(units);
+    itk::dmr::BarycentricMap<D> map;
+    map.Build(grid, mesh, threader);
+    EXPECT_EQ(map.GetElements(), serial.GetElements()) << units << " work units";
+    ASSERT_EQ(map.GetWeights().size(), serial.GetWeights().size());
+    EXPECT_EQ(
+      0, std::memcmp(map.GetWeights().data(), serial.GetWeights().data(), serial.GetWeights().size() * sizeof(float)))
+      << units << " work units";
+  }
+}
+
+TEST(BarycentricMap, BuildDoesNotDependOnTheThreads)
+{
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom();
+  CheckBuildDoesNotDependOnTheThreads<2>(phantom.GetGrid(), phantom.GetMesh());
+  const auto phantom3 = itk::dmr::test::MakeDualMeshPhantom3D(60);
+  CheckBuildDoesNotDependOnTheThreads<3>(phantom3.GetGrid(), phantom3.GetMesh());
+}
+
 template <unsigned int D>
 void
 CheckLinearFieldIsReproduced(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
@@ -335,6 +365,19 @@ TEST(BarycentricMap, MeshThatDoesNotCoverTheImageThrows)
   const auto                  mesh = itk::dmr::MakeRegularMesh<2>(half, { 4, 5 });
   itk::dmr::BarycentricMap<2> map;
   EXPECT_THROW(map.Build(grid, mesh, nullptr), itk::ExceptionObject);
+  // the message names the first pixel outside the mesh (x = 12, y = 0), whatever the threads
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(3);
+  try
+  {
+    map.Build(grid, mesh, threader);
+    ADD_FAILURE() << "no exception";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("pixel 12 is not covered"), std::string::npos) << e.GetDescription();
+  }
 }
 } // namespace
 

@@ -22,8 +22,6 @@
 #include "dmrSimplexMesh.h"
 #include <algorithm>
 #include <cmath>
-#include <atomic>
-#include <memory>
 #include <limits>
 
 namespace itk
@@ -32,11 +30,13 @@ namespace dmr
 {
 /** \brief Per-pixel element and barycentric coordinates of a simplex mesh over an image grid (paper 4.7).
  *
- * Built by rasterising every element (parallel over elements): along each row of its bounding box the barycentric
- * coordinates are affine in the first index, so only the span where all of them can be >= 0 (widened by a pixel on
- * each side) is tested, with the same per-pixel test as a full scan of the box. A pixel
- * centre on a shared edge/face is inside several elements; the element with the lowest id wins (an atomic minimum,
- * the rule the CUDA kernel uses too), so every pixel lies in exactly one element. Weights are in [0,1] and sum to 1.
+ * Built by rasterising every element: along each row of its bounding box the barycentric coordinates are affine in
+ * the first index, so only the span where all of them can be >= 0 (widened by a pixel on each side) is tested, with
+ * the same per-pixel test as a full scan of the box. A pixel centre on a shared edge/face is inside several elements;
+ * the element with the lowest id wins (the rule the CUDA kernel uses too, there by an atomic minimum), so every pixel
+ * lies in exactly one element. The threads take bands of planes along the slowest axis and rasterise the elements
+ * reaching into their band in increasing id, so the first element to claim a pixel is its owner: no atomics, and the
+ * weights are written in the same pass. Weights are in [0,1] and sum to 1.
  * Gather() forms the consistent load vector f_a = sum_x phi_a(x) f(x) dV; Interpolate() gives u(x) = sum_a phi_a(x)
  * u_a.
  * \ingroup DynamicMeshRegistration */
@@ -53,32 +53,85 @@ public:
     const size_t n = grid.numberOfPixels;
     m_Element.resize(n);
     m_Weights.resize(n * NumberOfVertices);
-    std::unique_ptr<std::atomic<int32_t>[]> owner(new std::atomic<int32_t>[n]);
-    ParallelForChunks(threader, n, [&](size_t b, size_t end) {
-      for (size_t p = b; p < end; ++p)
-      {
-        owner[p].store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
-      }
-    });
     const size_t nElements = mesh.elements.size();
-    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 4));
-    const size_t chunk = (nElements + nChunks - 1) / nChunks;
-    // per-element inverse edge matrix and first vertex, computed once (the weights pass reads them again)
-    constexpr size_t    affineSize = D * D + D;
-    std::vector<double> affine(nElements * affineSize);
-    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
-      const size_t end = std::min(nElements, (c + 1) * chunk);
-      for (size_t e = c * chunk; e < end; ++e)
-      {
-        int64_t lo[D], hi[D];
-        ElementAffine(grid, mesh, e, affine.data() + e * affineSize, lo, hi);
-        if (lo[0] > hi[0])
+    // per-element inverse edge matrix, first vertex and pixel bounding box, computed once
+    constexpr size_t                        affineSize = D * D + D;
+    std::vector<double>                     affine(nElements * affineSize);
+    std::vector<std::array<int64_t, 2 * D>> box(nElements);
+    {
+      const size_t nChunks = std::max<size_t>(1, std::min<size_t>(256, nElements / 64));
+      const size_t chunk = (nElements + nChunks - 1) / nChunks;
+      ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+        const size_t end = std::min(nElements, (c + 1) * chunk);
+        for (size_t e = c * chunk; e < end; ++e)
         {
-          continue;
+          ElementAffine(grid, mesh, e, affine.data() + e * affineSize, box[e].data(), box[e].data() + D);
         }
-        double inv[D][D], x0[D];
+      });
+    }
+    // Bands of planes along the slowest axis, one task each. Every band lists the elements whose box reaches into it,
+    // in increasing id, and rasterises their rows inside the band: the first element that claims a pixel has the
+    // lowest id of those containing it, so no pixel is written twice and no atomic is needed.
+    constexpr unsigned int S = D - 1;
+    const size_t           planes = grid.size[S];
+    const size_t           workUnits = threader ? std::max<size_t>(1, threader->GetNumberOfWorkUnits()) : 1;
+    const size_t           nBands = std::max<size_t>(1, std::min<size_t>(planes, 4 * workUnits));
+    std::vector<size_t>    bandOfPlane(planes);
+    for (size_t b = 0; b < nBands; ++b)
+    {
+      for (size_t z = b * planes / nBands; z < (b + 1) * planes / nBands; ++z)
+      {
+        bandOfPlane[z] = b;
+      }
+    }
+    std::vector<size_t> listStart(nBands + 1, 0);
+    for (size_t e = 0; e < nElements; ++e)
+    {
+      if (box[e][0] <= box[e][D])
+      {
+        for (size_t b = bandOfPlane[box[e][S]]; b <= bandOfPlane[box[e][D + S]]; ++b)
+        {
+          ++listStart[b + 1];
+        }
+      }
+    }
+    for (size_t b = 0; b < nBands; ++b)
+    {
+      listStart[b + 1] += listStart[b];
+    }
+    std::vector<int32_t> list(listStart[nBands]);
+    {
+      std::vector<size_t> cursor(listStart.begin(), listStart.end() - 1);
+      for (size_t e = 0; e < nElements; ++e)
+      {
+        if (box[e][0] <= box[e][D])
+        {
+          for (size_t b = bandOfPlane[box[e][S]]; b <= bandOfPlane[box[e][D + S]]; ++b)
+          {
+            list[cursor[b]++] = static_cast<int32_t>(e);
+          }
+        }
+      }
+    }
+    constexpr int32_t   none = std::numeric_limits<int32_t>::max();
+    std::vector<size_t> firstUncovered(nBands, n);
+    ParallelForChunkIds(threader, nBands, [&](size_t band) {
+      const int64_t zBegin = static_cast<int64_t>(band * planes / nBands);
+      const int64_t zEnd = static_cast<int64_t>((band + 1) * planes / nBands);
+      const size_t  pBegin = static_cast<size_t>(zBegin) * grid.stride[S];
+      const size_t  pEnd = static_cast<size_t>(zEnd) * grid.stride[S];
+      std::fill(m_Element.begin() + pBegin, m_Element.begin() + pEnd, none);
+      for (size_t i = listStart[band]; i < listStart[band + 1]; ++i)
+      {
+        const int32_t e = list[i];
+        double        inv[D][D], x0[D];
         std::copy(affine.data() + e * affineSize, affine.data() + e * affineSize + D * D, &inv[0][0]);
         std::copy(affine.data() + e * affineSize + D * D, affine.data() + (e + 1) * affineSize, x0);
+        int64_t lo[D], hi[D];
+        std::copy(box[e].data(), box[e].data() + D, lo);
+        std::copy(box[e].data() + D, box[e].data() + 2 * D, hi);
+        lo[S] = std::max(lo[S], zBegin);
+        hi[S] = std::min(hi[S], zEnd - 1);
         // slope of every barycentric coordinate along axis 0 (per pixel) and its scale, for the row spans
         double slope[NumberOfVertices], scale[NumberOfVertices];
         slope[0] = 0.0;
@@ -127,8 +180,18 @@ public:
             }
           }
           const int64_t rowEnd = empty ? lo[0] - 1 : static_cast<int64_t>(last);
+          size_t        rowStart = 0;
+          for (unsigned int k = 1; k < D; ++k)
+          {
+            rowStart += static_cast<size_t>(idx[k]) * grid.stride[k];
+          }
           for (idx[0] = static_cast<int64_t>(first); idx[0] <= rowEnd; ++idx[0])
           {
+            const size_t p = rowStart + static_cast<size_t>(idx[0]);
+            if (m_Element[p] != none)
+            {
+              continue; // an element of lower id holds it
+            }
             // the same test as a scan of the whole bounding box
             Barycentric(inv, x0, idx, lambda);
             bool inside = true;
@@ -138,15 +201,17 @@ public:
             }
             if (inside)
             {
-              size_t p = 0;
-              for (unsigned int k = 0; k < D; ++k)
+              // weights of the owner, clamped to [0,1] and renormalised
+              m_Element[p] = e;
+              double sum = 0.0;
+              for (unsigned int v = 0; v < NumberOfVertices; ++v)
               {
-                p += static_cast<size_t>(idx[k]) * grid.stride[k];
+                lambda[v] = std::min(1.0, std::max(0.0, lambda[v]));
+                sum += lambda[v];
               }
-              int32_t       current = owner[p].load(std::memory_order_relaxed);
-              const int32_t mine = static_cast<int32_t>(e);
-              while (mine < current && !owner[p].compare_exchange_weak(current, mine, std::memory_order_relaxed))
+              for (unsigned int v = 0; v < NumberOfVertices; ++v)
               {
+                m_Weights[p * NumberOfVertices + v] = static_cast<float>(lambda[v] / sum);
               }
             }
           }
@@ -165,46 +230,19 @@ public:
           }
         }
       }
-    });
-    // second pass: weights of the owning element, clamped to [0,1] and renormalised
-    std::atomic<int64_t> uncovered{ -1 };
-    ParallelForChunks(threader, n, [&](size_t b, size_t end) {
-      // the pixel index advanced pixel by pixel: no division per pixel
-      ForEachPixel(grid, b, end, [&](size_t p, const std::array<int64_t, D> & idx3) {
-        const int32_t e = owner[p].load(std::memory_order_relaxed);
-        if (e == std::numeric_limits<int32_t>::max())
+      for (size_t p = pBegin; p < pEnd; ++p)
+      {
+        if (m_Element[p] == none)
         {
-          uncovered.store(static_cast<int64_t>(p));
           m_Element[p] = -1;
-          return;
+          firstUncovered[band] = std::min(firstUncovered[band], p);
         }
-        m_Element[p] = e;
-        double         inv[D][D], x0[D];
-        const double * a = affine.data() + e * affineSize;
-        std::copy(a, a + D * D, &inv[0][0]);
-        std::copy(a + D * D, a + affineSize, x0);
-        int64_t idx[D];
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          idx[k] = idx3[k];
-        }
-        double lambda[NumberOfVertices];
-        Barycentric(inv, x0, idx, lambda);
-        double sum = 0.0;
-        for (unsigned int v = 0; v < NumberOfVertices; ++v)
-        {
-          lambda[v] = std::min(1.0, std::max(0.0, lambda[v]));
-          sum += lambda[v];
-        }
-        for (unsigned int v = 0; v < NumberOfVertices; ++v)
-        {
-          m_Weights[p * NumberOfVertices + v] = static_cast<float>(lambda[v] / sum);
-        }
-      });
+      }
     });
-    if (uncovered.load() >= 0)
+    const size_t uncovered = *std::min_element(firstUncovered.begin(), firstUncovered.end());
+    if (uncovered < n)
     {
-      itkGenericExceptionMacro("BarycentricMap: pixel " << uncovered.load()
+      itkGenericExceptionMacro("BarycentricMap: pixel " << uncovered
                                                         << " is not covered by any element: the mesh does not cover "
                                                            "the image domain");
     }
