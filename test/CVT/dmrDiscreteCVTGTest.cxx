@@ -293,6 +293,68 @@ TEST(DiscreteCVT, SetLabelsAndSetStateRejectOutOfRangeAndEmptyCells)
   EXPECT_EQ(cvt.GetCentroids(), centroids);
 }
 
+// SetLabels sums every cell's mass and first moment in pixel order (the order the CUDA back-end reproduces): the
+// result must be that of the plain loop, bit for bit, also where a cell's pixels come in many interleaved runs; a
+// label outside the range is reported at its first pixel.
+template <unsigned int D>
+void
+CheckSetLabelsSumsInPixelOrder(const itk::dmr::Grid<D> & grid)
+{
+  const auto           density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 17u);
+  const size_t         nCells = 7;
+  std::vector<int32_t> labels(grid.numberOfPixels);
+  std::mt19937         rng(5);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    // runs of random length, every cell present
+    labels[p] =
+      p < nCells ? static_cast<int32_t>(p) : (rng() % 4 == 0 ? static_cast<int32_t>(rng() % nCells) : labels[p - 1]);
+  }
+  itk::dmr::DiscreteCVT<D> cvt;
+  cvt.SetDensity(grid, density.data(), nullptr);
+  cvt.SetLabels(labels.data(), nCells);
+  std::vector<double> mass(nCells, 0.0), moment(nCells * D, 0.0);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto idx = grid.Index(p);
+    mass[labels[p]] += density[p];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      moment[labels[p] * D + k] += density[p] * (static_cast<double>(idx[k]) * grid.spacing[k]);
+    }
+  }
+  for (size_t c = 0; c < nCells; ++c)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      moment[c * D + k] /= mass[c];
+    }
+  }
+  EXPECT_EQ(cvt.GetMasses(), mass);
+  EXPECT_EQ(cvt.GetCentroids(), moment);
+
+  labels[grid.numberOfPixels / 3] = -1;
+  labels[grid.numberOfPixels / 2] = static_cast<int32_t>(nCells);
+  try
+  {
+    cvt.SetLabels(labels.data(), nCells);
+    ADD_FAILURE() << "no exception";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    const std::string expected = "label -1 at pixel " + std::to_string(grid.numberOfPixels / 3) + " ";
+    EXPECT_NE(std::string(e.GetDescription()).find(expected), std::string::npos) << e.GetDescription();
+  }
+}
+
+TEST(DiscreteCVT, SetLabelsSumsEveryCellInPixelOrder)
+{
+  CheckSetLabelsSumsInPixelOrder<2>(
+    itk::dmr::Grid<2>(std::array<size_t, 2>{ 37, 29 }, std::array<double, 2>{ 0.7, 1.3 }));
+  CheckSetLabelsSumsInPixelOrder<3>(
+    itk::dmr::Grid<3>(std::array<size_t, 3>{ 13, 11, 9 }, std::array<double, 3>{ 1.1, 0.9, 2.5 }));
+}
+
 TEST(DiscreteCVT, SweepsNeverRaiseEnergyAndKeepCellsConnected)
 {
   const itk::dmr::Grid<2>  grid(size2D, spacing2D);

@@ -146,13 +146,12 @@ public:
   void
   SetDensity(const GridType & grid, const float * density, MultiThreaderBase * threader)
   {
-    for (size_t p = 0; p < grid.numberOfPixels; ++p)
+    const size_t p = FirstIndexWhere(
+      threader, grid.numberOfPixels, [&](size_t i) { return !(density[i] > 0.0f) || !std::isfinite(density[i]); });
+    if (p < grid.numberOfPixels)
     {
-      if (!(density[p] > 0.0f) || !std::isfinite(density[p]))
-      {
-        itkGenericExceptionMacro("DiscreteCVT: the density must be positive and finite everywhere; pixel "
-                                 << p << " has " << density[p]);
-      }
+      itkGenericExceptionMacro("DiscreteCVT: the density must be positive and finite everywhere; pixel " << p << " has "
+                                                                                                         << density[p]);
     }
     m_Grid = grid;
     m_Density = density;
@@ -649,24 +648,45 @@ public:
     m_Energy = energy;
   }
 
-  /** Masses, centroids and energy from scratch (per-chunk sums combined in chunk order). */
+  /** Masses, centroids and energy from scratch: every cell's sums in pixel order. */
   void
   RecomputeStatistics(size_t numberOfCells)
   {
     m_Mass.assign(numberOfCells, 0.0);
     m_Centroid.assign(numberOfCells * D, 0.0);
+    // Every cell's sums in pixel order (the CUDA back-end's order too), in one pass on this thread: a pass over the
+    // pixels costs less than handing it to other cores. The sums of the current run of one label stay in registers
+    // (the same additions in the same order, without a store and reload per pixel); a label is checked where a run
+    // starts, so the first pixel with a label outside [0, numberOfCells) is the one reported.
+    LabelType run = -1;
+    double    mass = 0.0, moment[D] = {};
+    auto      flush = [&] {
+      if (run >= 0)
+      {
+        m_Mass[run] = mass;
+        std::copy(moment, moment + D, &m_Centroid[run * D]);
+      }
+    };
     ForEachPosition(0, m_Grid.numberOfPixels, [&](size_t p, const double * x) {
       const LabelType l = m_Labels[p];
-      if (l < 0 || static_cast<size_t>(l) >= numberOfCells)
+      if (l != run)
       {
-        ThrowLabelOutsideRange(l, p, numberOfCells);
+        if (l < 0 || static_cast<size_t>(l) >= numberOfCells)
+        {
+          ThrowLabelOutsideRange(l, p, numberOfCells);
+        }
+        flush();
+        run = l;
+        mass = m_Mass[l];
+        std::copy(&m_Centroid[l * D], &m_Centroid[l * D] + D, moment);
       }
-      m_Mass[l] += m_Density[p];
+      mass += m_Density[p];
       for (unsigned int k = 0; k < D; ++k)
       {
-        m_Centroid[l * D + k] += m_Density[p] * x[k];
+        moment[k] += m_Density[p] * x[k];
       }
     });
+    flush();
     for (size_t c = 0; c < numberOfCells; ++c)
     {
       if (!(m_Mass[c] > 0.0))
@@ -1114,15 +1134,37 @@ private:
     }
     m_SubSweep = NumberOfColours + 1;
     m_CellStamp.assign(nCells, NumberOfColours); // >= the window start (1 + colour) of the first sweep
-    IndexType idx{};
-    for (size_t p = 0; p < n; ++p, Increment(idx))
-    {
-      if (IsBoundary(p, idx))
+    // the boundary pixels of every colour, found per chunk on the threader and joined in chunk order: pixel order
+    const size_t nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 16384));
+    const size_t chunk = (n + nChunks - 1) / nChunks;
+    std::vector<std::array<std::vector<uint32_t>, NumberOfColours>> found(nChunks);
+    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+      const size_t begin = std::min(n, c * chunk);
+      const size_t end = std::min(n, (c + 1) * chunk);
+      if (begin == end)
       {
-        const unsigned int colour = Colour(idx);
-        m_PixelState[p] = InColourList | InCellList;
-        m_ScanList[colour].push_back(static_cast<uint32_t>(p)); // in pixel order
-        m_CellLists[static_cast<size_t>(m_Labels[p]) * NumberOfColours + colour].push_back(static_cast<uint32_t>(p));
+        return;
+      }
+      IndexType idx = PixelIndex(begin);
+      for (size_t p = begin; p < end; ++p, Increment(idx))
+      {
+        if (IsBoundary(p, idx))
+        {
+          m_PixelState[p] = InColourList | InCellList;
+          found[c][Colour(idx)].push_back(static_cast<uint32_t>(p));
+        }
+      }
+    });
+    for (unsigned int colour = 0; colour < NumberOfColours; ++colour)
+    {
+      auto & list = m_ScanList[colour];
+      for (const auto & f : found)
+      {
+        list.insert(list.end(), f[colour].begin(), f[colour].end());
+      }
+      for (const uint32_t p : list) // every cell's list in pixel order
+      {
+        m_CellLists[static_cast<size_t>(m_Labels[p]) * NumberOfColours + colour].push_back(p);
       }
     }
     for (size_t l = 0; l < m_CellLists.size(); ++l)

@@ -19,11 +19,11 @@
 #define itkDiscreteCVTFilter_hxx
 
 #include "itkDiscreteCVTFilter.h"
-#include "itkImageRegionConstIterator.h"
 #include "itkProgressReporter.h"
 #include "dmrCudaBackend.h"
 #include <memory>
 #include <chrono>
+#include <type_traits>
 
 namespace itk
 {
@@ -162,20 +162,31 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
     m_BackendUsed = BackendEnum::CPU;
   }
 
-  m_DensityBuffer.resize(grid.numberOfPixels);
+  // the input is whole (GenerateInputRequestedRegion): its buffer in pixel order, checked and converted on the threader
+  MultiThreaderBase * threader = this->GetMultiThreader();
+  const size_t        n = grid.numberOfPixels;
+  if (density->GetBufferedRegion() != density->GetLargestPossibleRegion())
   {
-    ImageRegionConstIterator<DensityImageType> it(density, density->GetLargestPossibleRegion());
-    size_t                                     i = 0;
-    for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
-    {
-      const double v = static_cast<double>(it.Get());
-      if (!(v > 0.0) || !std::isfinite(v))
-      {
-        itkExceptionMacro("the density must be positive and finite everywhere; pixel " << i << " has " << v);
-      }
-      m_DensityBuffer[i] = static_cast<float>(v);
-    }
+    itkExceptionMacro("the density image's buffered region " << density->GetBufferedRegion()
+                                                             << " is not its largest possible region");
   }
+  const auto * densityIn = density->GetBufferPointer();
+  const size_t badDensity = dmr::FirstIndexWhere(threader, n, [&](size_t i) {
+    const double v = static_cast<double>(densityIn[i]);
+    return !(v > 0.0) || !std::isfinite(v);
+  });
+  if (badDensity < n)
+  {
+    itkExceptionMacro("the density must be positive and finite everywhere; pixel "
+                      << badDensity << " has " << static_cast<double>(densityIn[badDensity]));
+  }
+  m_DensityBuffer.resize(n);
+  dmr::ParallelForChunks(threader, n, [&](size_t b, size_t e) {
+    for (size_t i = b; i < e; ++i)
+    {
+      m_DensityBuffer[i] = static_cast<float>(static_cast<double>(densityIn[i]));
+    }
+  });
   m_Core.SetDensity(grid, m_DensityBuffer.data(), this->GetMultiThreader());
   // progress within the contraction (first third) and the CPU sweeps (second third); AbortGenerateData set by an
   // observer stops either within 65536 merges or one sweep
@@ -201,18 +212,47 @@ DiscreteCVTFilter<TDensityImage, TLabelImage>::GenerateData()
   bool warm = false;
   if (initial)
   {
-    std::vector<int32_t>                     labels(grid.numberOfPixels);
-    ImageRegionConstIterator<LabelImageType> it(initial, initial->GetLargestPossibleRegion());
-    size_t                                   i = 0;
-    int64_t                                  maxLabel = -1;
-    for (it.GoToBegin(); !it.IsAtEnd(); ++it, ++i)
+    if (initial->GetBufferedRegion() != initial->GetLargestPossibleRegion())
     {
-      labels[i] = static_cast<int32_t>(it.Get());
-      maxLabel = std::max<int64_t>(maxLabel, labels[i]);
+      itkExceptionMacro("the initial labels' buffered region " << initial->GetBufferedRegion()
+                                                               << " is not their largest possible region");
     }
+    // the labels as the core's 32-bit type (the buffer itself when it has that type)
+    std::vector<int32_t> converted;
+    const int32_t *      labels = nullptr;
+    using LabelPixelType = typename LabelImageType::PixelType;
+    if constexpr (std::is_same<LabelPixelType, int32_t>::value)
+    {
+      labels = initial->GetBufferPointer();
+    }
+    else
+    {
+      converted.resize(n);
+      const LabelPixelType * in = initial->GetBufferPointer();
+      dmr::ParallelForChunks(threader, n, [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i)
+        {
+          converted[i] = static_cast<int32_t>(in[i]);
+        }
+      });
+      labels = converted.data();
+    }
+    const size_t         nChunks = 64;
+    const size_t         chunk = (n + nChunks - 1) / nChunks;
+    std::vector<int64_t> chunkMax(nChunks, -1);
+    dmr::ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      const size_t end = std::min(n, (c + 1) * chunk);
+      int64_t      m = -1;
+      for (size_t i = std::min(n, c * chunk); i < end; ++i)
+      {
+        m = std::max<int64_t>(m, labels[i]);
+      }
+      chunkMax[c] = m;
+    });
+    const int64_t maxLabel = *std::max_element(chunkMax.begin(), chunkMax.end());
     if (maxLabel + 1 == static_cast<int64_t>(m_NumberOfCells))
     {
-      m_Core.SetLabels(labels.data(), m_NumberOfCells);
+      m_Core.SetLabels(labels, m_NumberOfCells);
       warm = true;
     }
   }

@@ -30,6 +30,7 @@
 #include <sstream>
 #include <string>
 #include <utility>
+#include <vector>
 
 namespace itk
 {
@@ -378,6 +379,42 @@ ParallelForChunkIds(MultiThreaderBase * threader, size_t numberOfChunks, TBody &
   }
   threader->ParallelizeArray(
     0, numberOfChunks, [&](SizeValueType c) { body(static_cast<size_t>(c)); }, nullptr);
+}
+
+/** The smallest i in [0, n) with bad(i), or n when there is none; on the threader's work units (64 chunks), with the
+ * same answer as a serial scan. */
+template <typename TPredicate>
+size_t
+FirstIndexWhere(MultiThreaderBase * threader, size_t n, TPredicate && bad)
+{
+  const size_t        nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 4096));
+  const size_t        chunk = (n + nChunks - 1) / nChunks;
+  std::vector<size_t> first(nChunks, n);
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t end = std::min(n, (c + 1) * chunk);
+    // blocks of 256 tested without a branch per element (vectorisable), searched only when one of them is bad
+    for (size_t b = std::min(n, c * chunk); b < end; b += 256)
+    {
+      const size_t blockEnd = std::min(end, b + 256);
+      bool         any = false;
+      for (size_t i = b; i < blockEnd; ++i)
+      {
+        any |= bad(i);
+      }
+      if (any)
+      {
+        for (size_t i = b; i < blockEnd; ++i)
+        {
+          if (bad(i))
+          {
+            first[c] = i;
+            return;
+          }
+        }
+      }
+    }
+  });
+  return *std::min_element(first.begin(), first.end());
 }
 
 /** Why `image` does not lie on the grid of `reference` (the same largest region, start and size, and the same origin,
