@@ -24,12 +24,14 @@
 // point to its moving point, u_0(x) = T(x) - x.
 #include "itkCompositeTransform.h"
 #include "itkImage.h"
+#include "itkMultiThreaderBase.h"
 #include "itkNearestNeighborExtrapolateImageFunction.h"
 #include "itkResampleImageFilter.h"
 #include "itkTransformFactoryBase.h"
 #include "itkTransformFileReader.h"
 #include "itkTransformToDisplacementFieldFilter.h"
 #include "itkVector.h"
+#include "dmrFieldImage.h"
 #include "dmrGrid.h"
 #include "dmrImageMetrics.h"
 #include "dmrReadImage.h"
@@ -294,18 +296,23 @@ InitialFieldOnGrid(const std::string & path, const TReference * reference, std::
   }
   return field;
 }
-/** The inverse of the transform file's transformation, v_0(y) = T^-1(y) - y, on the grid of `reference` (physical
- * frame, mm, float vectors): what FEMRegistrationMethod's ComputeInverse starts from. Throws itk::ExceptionObject for
- * a displacement field image (its inverse is not known exactly) and for a transform without an inverse (e.g. a
- * B-spline), with a message that says so. */
+/** The inverse of the initial transformation on the grid of `reference` (physical frame, mm, float vectors): what
+ * FEMRegistrationMethod's ComputeInverse starts from. For a transform file, v_0(y) = T^-1(y) - y; it throws
+ * itk::ExceptionObject for a transform without an inverse (e.g. a B-spline), with a message that says so. For a
+ * displacement field image, `forward` (the field as InitialFieldOnGrid put it on the reference grid) is inverted by
+ * fixed-point iteration (dmr::InverseDisplacementField), which throws for a folded field. */
 template <unsigned int D, typename TReference>
 typename itk::Image<itk::Vector<float, D>, D>::Pointer
-InitialInverseFieldOnGrid(const std::string & path, const TReference * reference)
+InitialInverseFieldOnGrid(const std::string &                          path,
+                          const TReference *                           reference,
+                          const itk::Image<itk::Vector<float, D>, D> * forward)
 {
   if (!IsTransformFileName(path))
   {
-    itkGenericExceptionMacro(<< "the inverse of a displacement field given as the initial transformation is not "
-                                "known: give a transform file (e.g. the affine pre-alignment) or leave out --inverse");
+    // a displacement field (on the fixed grid by now, as `forward`): its inverse by fixed-point iteration, refused
+    // where there is none (a folded field)
+    auto threader = itk::MultiThreaderBase::New();
+    return itk::dmr::InverseDisplacementField(forward, threader.GetPointer());
   }
   const auto transform = ReadTransformFile<D>(path);
   const auto inverse = transform->GetInverseTransform();

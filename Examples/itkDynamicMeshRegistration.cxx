@@ -150,7 +150,8 @@ const char * const Usage =
   "  --initial-transform FILE  start from this transformation (e.g. an affine pre-alignment): an ITK transform file\n"
   "                         (.tfm, .txt, .mat, .h5: ITK, ANTs, elastix's ITK export) or a displacement field image\n"
   "                         (mm, moving point = fixed point + u, LPS); the outputs hold it composed with the\n"
-  "                         registration's part\n"
+  "                         registration's part. With --inverse the inverse starts from its inverse (a field's by\n"
+  "                         fixed-point iteration; a folded field, det J <= 0 somewhere, has none and is refused)\n"
   "  --fixed-mask FILE      region of interest on the fixed image (non-zero = inside, e.g. the lungs): forces,\n"
   "                         density and SSD only inside it; resampled (nearest) onto the fixed grid if needed\n"
   "  --intensity-window LO,HI  register the images clamped to [LO, HI] and scaled to [0, 1] (e.g. -1000,200 for\n"
@@ -793,7 +794,8 @@ Run(const Options & opt)
       initialField = dmrtools::InitialFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer(), initialKind);
       if (opt.inverse)
       {
-        initialInverseField = dmrtools::InitialInverseFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer());
+        initialInverseField =
+          dmrtools::InitialInverseFieldOnGrid<D>(opt.initialTransform, fixed.GetPointer(), initialField.GetPointer());
       }
     }
     catch (const itk::ExceptionObject & e)

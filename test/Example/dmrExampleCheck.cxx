@@ -358,13 +358,42 @@ MakeNonFinite(const std::string & path)
   return std::isnan(reader->GetOutput()->GetPixel({ { 5, 3 } })) ? EXIT_SUCCESS : EXIT_FAILURE;
 }
 
+/** A folded 2D displacement field on the grid of the 2D image `reference`: u_x = 3 sin(2 pi i_0 / 6) pixels along
+ * the image's first axis (det(I + grad u) down to about -1.7), mm, physical frame. */
+int
+MakeFoldedField(const std::string & path, const std::string & reference)
+{
+  using FieldType = itk::Image<itk::Vector<float, 2>, 2>;
+  auto reader = itk::ImageFileReader<itk::Image<float, 2>>::New();
+  reader->SetFileName(reference);
+  reader->Update();
+  const auto * image = reader->GetOutput();
+  auto         field = FieldType::New();
+  field->CopyInformation(image);
+  field->SetRegions(image->GetLargestPossibleRegion());
+  field->Allocate();
+  itk::ImageRegionIteratorWithIndex<FieldType> it(field, field->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    const double a = 3.0 * std::sin(2.0 * M_PI * static_cast<double>(it.GetIndex()[0]) / 6.0) * image->GetSpacing()[0];
+    FieldType::PixelType u;
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      u[k] = static_cast<float>(a * image->GetDirection()[k][0]);
+    }
+    it.Set(u);
+  }
+  Write(field.GetPointer(), path);
+  return EXIT_SUCCESS;
+}
+
 int
 Usage()
 {
   std::cerr << "usage: dmrExampleCheck same-grid A B | components A N | min-above A T | border-equals A V1,V2[,V3] | "
                "make-3d OUT [SHIFT] | "
                "make-3d-thin OUT | make-3d-mask OUT [VALUE] | make-3d-mask-fine OUT SHIFT | "
-               "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | "
+               "make-2d OUT | make-2d-byte OUT [SHIFT] | make-nonfinite OUT | make-folded-field OUT REFERENCE | "
                "make-constant OUT\n";
   return 2;
 }
@@ -411,6 +440,10 @@ main(int argc, char * argv[])
     if (mode == "make-nonfinite" && argc == 3)
     {
       return MakeNonFinite(argv[2]);
+    }
+    if (mode == "make-folded-field" && argc == 4)
+    {
+      return MakeFoldedField(argv[2], argv[3]);
     }
     if (argc != 4)
     {

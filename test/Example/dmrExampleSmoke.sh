@@ -379,10 +379,30 @@ run-initial-transform)
   check "a run without --inverse into that directory exits 0" test "$RC" = 0
   check "and removes the earlier run's inverse-displacement.nii.gz" test ! -e "$inv/inverse-displacement.nii.gz"
   check "its report has no inverse_consistency_mm" bash -c "! grep -q inverse_consistency_mm '$inv/report.json'"
-  # the inverse of a displacement field given as the initial transformation is not known: refused
+  # a displacement field as the initial transformation: the inverse starts from its fixed-point inverse, so the run
+  # from the first run's field undoes its forward field as the run from the translation does
+  finv="$W/field-inverse"
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --output-dir "$finv" --nodes 30 \
+    --iterations 3 --threads 2 --initial-transform "$out/displacement.nii.gz" --inverse
+  cat "$W/stdout" "$W/stderr"
+  check "--inverse from a displacement field: registration exits 0" test "$RC" = 0
+  [ "$RC" = 0 ] || finish
+  check "--inverse from a displacement field: its forward field is the one of the run without --inverse" \
+    cmp <(zcat "$W/again/displacement.nii.gz") <(zcat "$finv/displacement.nii.gz")
+  consistency=$(sed -n 's/.*"forward_then_inverse": {"mean": \([-0-9.eE+]*\),.*"inverse_then_forward": {"mean": \([-0-9.eE+]*\),.*/\1 \2/p' \
+    "$finv/report.json")
+  echo "inverse consistency means from the field (mm): $consistency"
+  check "report: inverse_consistency_mm means from the field ($consistency) below 0.05 mm both ways" \
+    awk -v c="${consistency:-x}" 'BEGIN { if (split(c, m, " ") != 2) exit 1; exit !(m[1] < 0.05 && m[2] < 0.05) }'
+  # a folded displacement field has no inverse: refused with --inverse
+  check "a folded field is written" "$CHECK" make-folded-field "$W/folded.nii.gz" "$DATA/fixed.nii.gz"
   rm -f "$W/stdout" "$W/stderr"
-  expect_bad_input inverse-of-initial-field --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
-    --iterations 2 --initial-transform "$out/displacement.nii.gz" --inverse
+  expect_bad_input inverse-of-folded-field --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 \
+    --iterations 2 --initial-transform "$W/folded.nii.gz" --inverse
+  run_reg --fixed "$DATA/fixed.nii.gz" --moving "$DATA/moving.nii.gz" --nodes 30 --iterations 2 \
+    --initial-transform "$W/folded.nii.gz" --inverse --output-dir "$W/out-folded-message"
+  check "the refusal says that the field is folded" grep -q 'displacement field is folded' "$W/stderr"
+  rm -f "$W/stdout" "$W/stderr"
   ;;
 bad-initial-transform)
   printf '#Insight Transform File V1.0\n#Transform 0\nTransform: TranslationTransform_double_3_3\nParameters: 4 -3 1\nFixedParameters:\n' \

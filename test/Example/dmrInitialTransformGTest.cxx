@@ -311,6 +311,114 @@ TEST(InitialTransform, AFieldImageOnAnotherGridIsResampledThroughPhysicalSpace)
   EXPECT_EQ(same->GetPixel({ { 3, 4, 5 } }), u);
 }
 
+// --inverse with a displacement field image: its inverse on the fixed grid by fixed-point iteration. For an affine
+// field the iteration of a voxel y only samples the field at y + v(y), so wherever T^-1(y) lies inside the grid the
+// result is the exact inverse T^-1(y) - y to the tolerance (0.001 voxel). A folded field is refused, although every
+// voxel's iteration converges there (to one of the points that map onto it).
+TEST(InitialTransform, TheInverseOfAFieldImageIsItsFixedPointInverse)
+{
+  auto         reference = Reference();
+  auto         affine = itk::AffineTransform<double, 3>::New();
+  auto         parameters = affine->GetParameters();
+  const double values[12] = { 1.04, 0.03, -0.02, -0.02, 0.97, 0.01, 0.02, -0.01, 1.03, 0.6, -0.4, 0.9 };
+  for (unsigned int i = 0; i < 12; ++i)
+  {
+    parameters[i] = values[i];
+  }
+  affine->SetParameters(parameters);
+  FieldType::PointType centre;
+  reference->TransformContinuousIndexToPhysicalPoint(
+    itk::ContinuousIndex<double, 3>(std::array<double, 3>{ 9.5, 7.5, 5.5 }.data()), centre);
+  affine->SetCenter(centre);
+  auto field = FieldType::New();
+  field->CopyInformation(reference);
+  field->SetRegions(reference->GetLargestPossibleRegion());
+  field->Allocate();
+  itk::ImageRegionIteratorWithIndex<FieldType> it(field, field->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    FieldType::PointType x;
+    field->TransformIndexToPhysicalPoint(it.GetIndex(), x);
+    const auto           y = affine->TransformPoint(x);
+    FieldType::PixelType u;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      u[k] = static_cast<float>(y[k] - x[k]);
+    }
+    it.Set(u);
+  }
+  auto writer = itk::ImageFileWriter<FieldType>::New();
+  writer->SetInput(field);
+  writer->SetFileName(Path("affine-field.nii.gz"));
+  writer->Update();
+  std::string kind;
+  const auto  forward = dmrtools::InitialFieldOnGrid<3>(Path("affine-field.nii.gz"), reference.GetPointer(), kind);
+  const auto  inverse =
+    dmrtools::InitialInverseFieldOnGrid<3>(Path("affine-field.nii.gz"), reference.GetPointer(), forward.GetPointer());
+  // on the forward field's grid, the fixed grid as read back from the file
+  EXPECT_EQ(inverse->GetDirection(), forward->GetDirection());
+  EXPECT_EQ(inverse->GetOrigin(), forward->GetOrigin());
+  EXPECT_EQ(inverse->GetSpacing(), forward->GetSpacing());
+  EXPECT_EQ(inverse->GetLargestPossibleRegion(), reference->GetLargestPossibleRegion());
+  const auto exact = affine->GetInverseTransform();
+  ASSERT_TRUE(exact);
+  size_t                                            compared = 0;
+  double                                            largest = 0.0;
+  itk::ImageRegionConstIteratorWithIndex<FieldType> iv(inverse, inverse->GetLargestPossibleRegion());
+  for (iv.GoToBegin(); !iv.IsAtEnd(); ++iv)
+  {
+    FieldType::PointType y;
+    inverse->TransformIndexToPhysicalPoint(iv.GetIndex(), y);
+    const auto                      x = exact->TransformPoint(y);
+    itk::ContinuousIndex<double, 3> c;
+    inverse->TransformPhysicalPointToContinuousIndex(x, c);
+    bool inside = true;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      inside =
+        inside && c[k] >= 0.0 && c[k] <= static_cast<double>(inverse->GetLargestPossibleRegion().GetSize()[k] - 1);
+    }
+    if (!inside)
+    {
+      continue;
+    }
+    ++compared;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      largest = std::max(largest, std::abs(static_cast<double>(iv.Get()[k]) - (x[k] - y[k])));
+    }
+  }
+  std::cout << "inverse of the field image: " << compared << " voxels compared, largest error " << largest << " mm"
+            << std::endl;
+  EXPECT_GT(compared, inverse->GetLargestPossibleRegion().GetNumberOfPixels() / 2);
+  EXPECT_LT(largest, 3e-3); // 0.001 voxel of at most 2 mm, plus float rounding
+
+  // folded: u = 6 sin(2 pi i_2 / 6) mm along the direction's third column, on a 2 mm axis (|du/dz| up to 3)
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    const double         a = 6.0 * std::sin(2.0 * M_PI * static_cast<double>(it.GetIndex()[2]) / 6.0);
+    FieldType::PixelType u;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      u[k] = static_cast<float>(a * reference->GetDirection()[k][2]);
+    }
+    it.Set(u);
+  }
+  field->Modified();
+  writer->SetFileName(Path("folded-field.nii.gz"));
+  writer->Update();
+  const auto folded = dmrtools::InitialFieldOnGrid<3>(Path("folded-field.nii.gz"), reference.GetPointer(), kind);
+  try
+  {
+    dmrtools::InitialInverseFieldOnGrid<3>(Path("folded-field.nii.gz"), reference.GetPointer(), folded.GetPointer());
+    ADD_FAILURE() << "a folded field was inverted";
+  }
+  catch (const itk::ExceptionObject & e)
+  {
+    EXPECT_NE(std::string(e.GetDescription()).find("is folded"), std::string::npos) << e.GetDescription();
+  }
+}
+
 TEST(InitialTransform, BadFilesAreRefusedWithTheReason)
 {
   auto translation2D = itk::TranslationTransform<double, 2>::New();

@@ -554,3 +554,102 @@ TEST(FloorByTruncation, EqualsStdFloorAndCeil)
   EXPECT_TRUE(std::isnan(itk::dmr::FloorByTruncation(std::nan(""))));
   EXPECT_TRUE(std::isnan(itk::dmr::CeilByTruncation(std::nan(""))));
 }
+
+namespace
+{
+/** w = amplitude * (sin(2 pi i_1 / 64), cos(2 pi i_0 / 48)) pixels (stored in mm): smooth, |grad w| up to about
+ * amplitude * 2 pi / 48 per pixel. */
+std::vector<float>
+Waves(const itk::dmr::Grid<2> & grid, double amplitude)
+{
+  std::vector<float> w(grid.numberOfPixels * 2);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto i = grid.Index(p);
+    w[p * 2] =
+      static_cast<float>(amplitude * std::sin(2.0 * M_PI * static_cast<double>(i[1]) / 64.0) * grid.spacing[0]);
+    w[p * 2 + 1] =
+      static_cast<float>(amplitude * std::cos(2.0 * M_PI * static_cast<double>(i[0]) / 48.0) * grid.spacing[1]);
+  }
+  return w;
+}
+} // namespace
+
+// The inverse of a translation is the opposite translation, exactly (the clamped interpolation of a constant field).
+TEST(InvertField, ATranslationGivesTheOppositeTranslation)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 9, 8, 7 }, std::array<double, 3>{ 0.5, 1.25, 2.0 });
+  std::vector<float>      w(grid.numberOfPixels * 3), v(w.size());
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    w[p * 3] = 1.75f;
+    w[p * 3 + 1] = -3.5f;
+    w[p * 3 + 2] = 0.25f;
+  }
+  const auto result = itk::dmr::InvertField<3>(grid, w.data(), v.data(), nullptr);
+  EXPECT_LE(result.residual, 1e-12);
+  for (size_t i = 0; i < w.size(); ++i)
+  {
+    ASSERT_EQ(v[i], -w[i]) << i;
+  }
+}
+
+// A smooth field with |grad w| up to 0.33 per pixel: the residual |v(y) + w(y + v(y))| reaches the tolerance, and v
+// undoes w where w moves the pixel centres (v(x + w(x)) = -w(x) up to the interpolation of v between pixels, away from
+// the border); the result does not depend on the threads.
+TEST(InvertField, ASmoothFieldIsUndone)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 96, 80 }, std::array<double, 2>{ 0.8, 1.3 });
+  const auto              w = Waves(grid, 2.5);
+  std::vector<float>      v(w.size());
+  const auto              result = itk::dmr::InvertField<2>(grid, w.data(), v.data(), nullptr);
+  EXPECT_LE(result.residual, 1e-3);
+  EXPECT_GT(result.iterations, 1u);
+  std::cout << "smooth field: residual " << result.residual << " pixel after " << result.iterations << " iterations"
+            << std::endl;
+  double largest = 0.0;
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto i = grid.Index(p);
+    double     at[2], back[2] = { w[p * 2], w[p * 2 + 1] };
+    bool       inside = true;
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      // away from the border, where the fixed points of the neighbouring pixels fall outside the grid and the
+      // clamped interpolation stands in for w there
+      at[k] = static_cast<double>(i[k]) + w[p * 2 + k] / grid.spacing[k];
+      inside = inside && at[k] >= 4.0 && at[k] <= static_cast<double>(grid.size[k] - 5);
+    }
+    if (!inside)
+    {
+      continue;
+    }
+    itk::dmr::InterpolateAdd<2, 2>(grid, v.data(), at, 1.0, back); // w(x) + v(x + w(x))
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      largest = std::max(largest, std::abs(back[k]) / grid.spacing[k]);
+    }
+  }
+  std::cout << "largest |w(x) + v(x + w(x))|: " << largest << " pixel" << std::endl;
+  EXPECT_LT(largest, 0.05);
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(3);
+  std::vector<float> threaded(w.size());
+  const auto         again = itk::dmr::InvertField<2>(grid, w.data(), threaded.data(), threader);
+  EXPECT_EQ(again.iterations, result.iterations);
+  EXPECT_EQ(0, std::memcmp(threaded.data(), v.data(), v.size() * sizeof(float)));
+}
+
+// A strongly folded field (|grad w| up to 1.6 per pixel: det(I + grad w) < 0 in places) has no inverse, and here the
+// iteration does not find preimages either: the residual stays far above the tolerance. (A milder fold can give a
+// small residual; InverseDisplacementField refuses folded fields by det J first.)
+TEST(InvertField, AFoldedFieldKeepsALargeResidual)
+{
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 96, 80 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto              w = Waves(grid, 12.0);
+  std::vector<float>      v(w.size());
+  const auto              result = itk::dmr::InvertField<2>(grid, w.data(), v.data(), nullptr);
+  EXPECT_EQ(result.iterations, 200u);
+  EXPECT_GT(result.residual, 0.1);
+}

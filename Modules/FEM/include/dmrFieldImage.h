@@ -51,6 +51,63 @@ ToGridFrame(const TField * field)
   return out;
 }
 
+/** The inverse of the transformation x -> x + u(x) of a physical displacement field, on the field's own grid:
+ * y -> y + v(y) with v(y) = -u(y + v(y)) (InvertField in the grid frame, u interpolated multilinearly and clamped to
+ * the border, as the registration composes fields). Throws an ExceptionObject for a folded field, det(I + grad u)
+ * <= 0 somewhere (central differences, as JacobianDeterminant): it has no inverse, although the iteration of every
+ * voxel, which looks for one point that maps onto it, may well converge there. Throws too when the iteration leaves a
+ * residual |v(y) + u(y + v(y))| above `tolerance` voxels after `maximumIterations`. outcome, when given, receives
+ * the residual and the number of iterations. */
+template <typename TField>
+typename TField::Pointer
+InverseDisplacementField(const TField *      field,
+                         MultiThreaderBase * threader,
+                         FieldInversion *    outcome = nullptr,
+                         unsigned int        maximumIterations = 200,
+                         double              tolerance = 1e-3)
+{
+  constexpr unsigned int D = TField::ImageDimension;
+  const auto             grid = Grid<D>::FromImage(field);
+  const auto             u = ToGridFrame(field);
+  const auto             detRange = JacobianDeterminant<D>(grid, u.data(), nullptr, threader);
+  if (!(detRange.first > 0.0))
+  {
+    itkGenericExceptionMacro("the displacement field is folded (det(I + grad u) down to " << detRange.first
+                                                                                          << "): it has no inverse");
+  }
+  std::vector<float>   v(u.size());
+  const FieldInversion result = InvertField<D>(grid, u.data(), v.data(), threader, maximumIterations, tolerance);
+  if (outcome)
+  {
+    *outcome = result;
+  }
+  if (!(result.residual <= tolerance))
+  {
+    itkGenericExceptionMacro("no inverse of the displacement field was found: after "
+                             << result.iterations << " fixed-point iterations v(y) = -u(y + v(y)) is still off by "
+                             << result.residual << " voxel somewhere (more than " << tolerance << ")");
+  }
+  auto inverse = TField::New();
+  inverse->CopyInformation(field);
+  inverse->SetRegions(field->GetLargestPossibleRegion());
+  inverse->Allocate();
+  const auto & dir = field->GetDirection();
+  auto *       out = inverse->GetBufferPointer();
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    for (unsigned int r = 0; r < D; ++r)
+    {
+      double x = 0.0;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        x += dir[r][k] * v[p * D + k];
+      }
+      out[p][r] = static_cast<typename TField::PixelType::ValueType>(x);
+    }
+  }
+  return inverse;
+}
+
 /** det(I + grad u) of a physical displacement field as an image on the field's grid (equal to the determinant in
  * the grid frame, since the direction is a rotation/reflection). minMax receives the extreme values. */
 template <typename TField>

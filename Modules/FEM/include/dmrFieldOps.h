@@ -157,6 +157,86 @@ ExponentialField(const Grid<D> &      grid,
   return squarings;
 }
 
+/** Outcome of InvertField. */
+struct FieldInversion
+{
+  double       residual{ 0.0 }; // largest |v(y) + w(y + v(y))| / spacing over pixels and axes, in pixels
+  unsigned int iterations{ 0 };
+};
+
+/** The inverse of the transformation x -> x + w(x) as a field v on the same grid: y -> y + v(y), with
+ * v(y) = -w(y + v(y)), w interpolated as ComposeFields does (multilinear, clamped to the border). Fixed-point
+ * iteration from v = -w, all pixels at once from the previous iterate (the result does not depend on the threads): v
+ * <- v - s r with the residual r(y) = v(y) + w(y + v(y)) and the step s = 1, halved (down to 1/64) whenever the largest
+ * residual grew. Stops when the largest residual is at most `tolerance` pixels or after `maximumIterations`; the
+ * caller decides from the returned residual whether the inverse is good enough. A small residual does not show that
+ * w is invertible: each pixel's iteration looks for one point that maps onto it, and may find one where w is folded
+ * (det(I + grad w) <= 0 somewhere), which has no inverse; InverseDisplacementField checks that first. v must not
+ * alias w. */
+template <unsigned int D>
+FieldInversion
+InvertField(const Grid<D> &     grid,
+            const float *       w,
+            float *             v,
+            MultiThreaderBase * threader,
+            unsigned int        maximumIterations = 200,
+            double              tolerance = 1e-3)
+{
+  const size_t n = grid.numberOfPixels * D;
+  for (size_t i = 0; i < n; ++i)
+  {
+    v[i] = -w[i];
+  }
+  std::vector<float>  residual(n);
+  const size_t        nChunks = 64;
+  const size_t        chunk = (grid.numberOfPixels + nChunks - 1) / nChunks;
+  std::vector<double> chunkMax(nChunks);
+  // r = v + w(y + v) at every pixel; returns the largest |r_k| / spacing_k (infinite where r is not finite)
+  auto residuals = [&]() {
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      const size_t end = std::min(grid.numberOfPixels, (c + 1) * chunk);
+      double       m = 0.0;
+      ForEachPixel(grid, std::min(end, c * chunk), end, [&](size_t p, const std::array<int64_t, D> & idx) {
+        double at[D], r[D];
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          at[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
+          r[k] = static_cast<double>(v[p * D + k]);
+        }
+        InterpolateAdd<D, D>(grid, w, at, 1.0, r);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          residual[p * D + k] = static_cast<float>(r[k]);
+          const double e = std::abs(r[k]) / grid.spacing[k];
+          m = std::isfinite(e) ? std::max(m, e) : std::numeric_limits<double>::infinity();
+        }
+      });
+      chunkMax[c] = m;
+    });
+    return *std::max_element(chunkMax.begin(), chunkMax.end());
+  };
+  FieldInversion result;
+  result.residual = residuals();
+  double step = 1.0;
+  while (result.iterations < maximumIterations && result.residual > tolerance && std::isfinite(result.residual))
+  {
+    ++result.iterations;
+    ParallelForChunks(threader, n, [&](size_t b, size_t e) {
+      for (size_t i = b; i < e; ++i)
+      {
+        v[i] = static_cast<float>(static_cast<double>(v[i]) - step * static_cast<double>(residual[i]));
+      }
+    });
+    const double previous = result.residual;
+    result.residual = residuals();
+    if (result.residual > previous)
+    {
+      step = std::max(step / 2.0, 1.0 / 64.0);
+    }
+  }
+  return result;
+}
+
 /** det(I + grad u) at every pixel (central differences, one-sided at the border; grid frame, so the value is the
  * physical Jacobian determinant). Writes into jac and returns {min, max}. */
 template <unsigned int D>

@@ -168,7 +168,7 @@ public:
   itkBooleanMacro(ComputeInverse);
   /** The inverse of InitialDisplacementField, W_0^-1(y) = y + v_0(y) (fixed grid, physical frame, mm), where the
    * inverse transformation is computed (ComputeInverse); e.g. the inverse of an affine pre-alignment made into a
-   * field. Ignored otherwise. */
+   * field, or dmr::InverseDisplacementField of the initial field (dmrFieldImage.h). Ignored otherwise. */
   itkSetInputMacro(InitialInverseDisplacementField, DisplacementFieldType);
   itkGetInputMacro(InitialInverseDisplacementField, DisplacementFieldType);
 
