@@ -654,10 +654,11 @@ public:
   {
     m_Mass.assign(numberOfCells, 0.0);
     m_Centroid.assign(numberOfCells * D, 0.0);
-    // Every cell's sums in pixel order (the CUDA back-end's order too), in one pass on this thread: a pass over the
-    // pixels costs less than handing it to other cores. The sums of the current run of one label stay in registers
-    // (the same additions in the same order, without a store and reload per pixel); a label is checked where a run
-    // starts, so the first pixel with a label outside [0, numberOfCells) is the one reported.
+    // Every cell's sums in pixel order (the CUDA back-end's order too), in one pass on this thread (splitting the
+    // cells among threads makes each of them read every pixel, which was slower on two cores). The sums of the
+    // current run of one label stay in registers (the same additions in the same order, without a store and reload
+    // per pixel); a label is checked where a run starts, so the first pixel with a label outside [0, numberOfCells) is
+    // the one reported.
     LabelType run = -1;
     double    mass = 0.0, moment[D] = {};
     auto      flush = [&] {
