@@ -100,6 +100,29 @@ LargestErrorAgainst(const FieldType * field, const itk::Transform<double, 3, 3> 
   return largest;
 }
 
+/** Fills the allocated `field` with u(x) = T(x) - x and writes it to path. */
+void
+WriteDisplacementOf(const itk::Transform<double, 3, 3> * transform, FieldType * field, const std::string & path)
+{
+  itk::ImageRegionIteratorWithIndex<FieldType> it(field, field->GetLargestPossibleRegion());
+  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
+  {
+    FieldType::PointType x;
+    field->TransformIndexToPhysicalPoint(it.GetIndex(), x);
+    const auto           y = transform->TransformPoint(x);
+    FieldType::PixelType u;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      u[k] = static_cast<float>(y[k] - x[k]);
+    }
+    it.Set(u);
+  }
+  auto writer = itk::ImageFileWriter<FieldType>::New();
+  writer->SetInput(field);
+  writer->SetFileName(path);
+  writer->Update();
+}
+
 itk::AffineTransform<double, 3>::Pointer
 SomeAffine()
 {
@@ -258,23 +281,8 @@ TEST(InitialTransform, AFieldImageOnAnotherGridIsResampledThroughPhysicalSpace)
   origin[2] = 60.0;
   coarse->SetOrigin(origin);
   coarse->Allocate();
-  itk::ImageRegionIteratorWithIndex<FieldType> it(coarse, coarse->GetLargestPossibleRegion());
-  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
-  {
-    FieldType::PointType x;
-    coarse->TransformIndexToPhysicalPoint(it.GetIndex(), x);
-    const auto           y = affine->TransformPoint(x);
-    FieldType::PixelType u;
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      u[k] = static_cast<float>(y[k] - x[k]);
-    }
-    it.Set(u);
-  }
+  WriteDisplacementOf(affine, coarse, Path("field.nii.gz"));
   auto writer = itk::ImageFileWriter<FieldType>::New();
-  writer->SetInput(coarse);
-  writer->SetFileName(Path("field.nii.gz"));
-  writer->Update();
   // the fixed grid must lie inside the coarse one for the exact comparison
   auto reference = Reference();
   for (unsigned int corner = 0; corner < 8; ++corner)
@@ -334,23 +342,7 @@ TEST(InitialTransform, TheInverseOfAFieldImageIsItsFixedPointInverse)
   field->CopyInformation(reference);
   field->SetRegions(reference->GetLargestPossibleRegion());
   field->Allocate();
-  itk::ImageRegionIteratorWithIndex<FieldType> it(field, field->GetLargestPossibleRegion());
-  for (it.GoToBegin(); !it.IsAtEnd(); ++it)
-  {
-    FieldType::PointType x;
-    field->TransformIndexToPhysicalPoint(it.GetIndex(), x);
-    const auto           y = affine->TransformPoint(x);
-    FieldType::PixelType u;
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      u[k] = static_cast<float>(y[k] - x[k]);
-    }
-    it.Set(u);
-  }
-  auto writer = itk::ImageFileWriter<FieldType>::New();
-  writer->SetInput(field);
-  writer->SetFileName(Path("affine-field.nii.gz"));
-  writer->Update();
+  WriteDisplacementOf(affine, field, Path("affine-field.nii.gz"));
   std::string kind;
   const auto  forward = dmrtools::InitialFieldOnGrid<3>(Path("affine-field.nii.gz"), reference.GetPointer(), kind);
   const auto  inverse =
@@ -394,6 +386,7 @@ TEST(InitialTransform, TheInverseOfAFieldImageIsItsFixedPointInverse)
   EXPECT_LT(largest, 3e-3); // 0.001 voxel of at most 2 mm, plus float rounding
 
   // folded: u = 6 sin(2 pi i_2 / 6) mm along the direction's third column, on a 2 mm axis (|du/dz| up to 3)
+  itk::ImageRegionIteratorWithIndex<FieldType> it(field, field->GetLargestPossibleRegion());
   for (it.GoToBegin(); !it.IsAtEnd(); ++it)
   {
     const double         a = 6.0 * std::sin(2.0 * M_PI * static_cast<double>(it.GetIndex()[2]) / 6.0);
@@ -404,7 +397,8 @@ TEST(InitialTransform, TheInverseOfAFieldImageIsItsFixedPointInverse)
     }
     it.Set(u);
   }
-  field->Modified();
+  auto writer = itk::ImageFileWriter<FieldType>::New();
+  writer->SetInput(field);
   writer->SetFileName(Path("folded-field.nii.gz"));
   writer->Update();
   const auto folded = dmrtools::InitialFieldOnGrid<3>(Path("folded-field.nii.gz"), reference.GetPointer(), kind);
