@@ -51,6 +51,33 @@ ToGridFrame(const TField * field)
   return out;
 }
 
+/** Grid-frame flat field -> the buffer of a physical displacement image of as many pixels (u_phys = Direction
+ * u_grid, the inverse rotation of ToGridFrame), on the threader. */
+template <typename TField>
+void
+FromGridFrame(const float *                          grid,
+              const typename TField::DirectionType & dir,
+              TField *                               image,
+              MultiThreaderBase *                    threader)
+{
+  constexpr unsigned int D = TField::ImageDimension;
+  auto *                 out = image->GetBufferPointer();
+  ParallelForChunks(threader, image->GetBufferedRegion().GetNumberOfPixels(), [&](size_t b, size_t e) {
+    for (size_t p = b; p < e; ++p)
+    {
+      for (unsigned int r = 0; r < D; ++r)
+      {
+        double v = 0.0;
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          v += dir[r][k] * grid[p * D + k];
+        }
+        out[p][r] = static_cast<typename TField::PixelType::ValueType>(v);
+      }
+    }
+  });
+}
+
 /** The inverse of the transformation x -> x + u(x) of a physical displacement field, on the field's own grid:
  * y -> y + v(y) with v(y) = -u(y + v(y)) (InvertField in the grid frame, u interpolated multilinearly and clamped to
  * the border, as the registration composes fields). Throws an ExceptionObject for a folded field, det(I + grad u)
@@ -91,20 +118,7 @@ InverseDisplacementField(const TField *      field,
   inverse->CopyInformation(field);
   inverse->SetRegions(field->GetLargestPossibleRegion());
   inverse->Allocate();
-  const auto & dir = field->GetDirection();
-  auto *       out = inverse->GetBufferPointer();
-  for (size_t p = 0; p < grid.numberOfPixels; ++p)
-  {
-    for (unsigned int r = 0; r < D; ++r)
-    {
-      double x = 0.0;
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        x += dir[r][k] * v[p * D + k];
-      }
-      out[p][r] = static_cast<typename TField::PixelType::ValueType>(x);
-    }
-  }
+  FromGridFrame(v.data(), field->GetDirection(), inverse.GetPointer(), threader);
   return inverse;
 }
 

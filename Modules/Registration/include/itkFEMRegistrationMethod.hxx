@@ -22,6 +22,7 @@
 #include "itkImageRegionConstIterator.h"
 #include "itkCommand.h"
 #include "dmrCudaBackend.h"
+#include "dmrFieldImage.h"
 #include "dmrRegistrationBackend.h"
 #include "dmrCVTBackend.h"
 #include "dmrDualMeshBackend.h"
@@ -262,23 +263,7 @@ void
 FEMRegistrationMethod<TF, TM, TD>::WriteGridFieldToImage(const std::vector<float> & grid,
                                                          DisplacementFieldType *    image) const
 {
-  const auto & dir = this->GetFixedImage()->GetDirection();
-  auto *       out = image->GetBufferPointer();
-  const size_t n = grid.size() / ImageDimension;
-  dmr::ParallelForChunks(this->GetMultiThreader(), n, [&](size_t b, size_t e) {
-    for (size_t p = b; p < e; ++p)
-    {
-      for (unsigned int r = 0; r < ImageDimension; ++r)
-      {
-        double v = 0.0;
-        for (unsigned int k = 0; k < ImageDimension; ++k)
-        {
-          v += dir[r][k] * grid[p * ImageDimension + k];
-        }
-        out[p][r] = static_cast<typename DisplacementFieldType::PixelType::ValueType>(v);
-      }
-    }
-  });
+  dmr::FromGridFrame(grid.data(), this->GetFixedImage()->GetDirection(), image, this->GetMultiThreader());
 }
 
 template <typename TF, typename TM, typename TD>
