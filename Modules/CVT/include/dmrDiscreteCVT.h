@@ -20,6 +20,7 @@
 
 #include "dmrGrid.h"
 #include "dmrNeighbourhood.h"
+#include "dmrWorkerTeam.h"
 #include "itkMacro.h"
 #include <vector>
 #include <numeric>
@@ -28,6 +29,7 @@
 #include <cstdint>
 #include <functional>
 #include <limits>
+#include <memory>
 
 namespace itk
 {
@@ -793,6 +795,12 @@ public:
     {
       BuildActiveLists();
     }
+    // the sub-sweeps' threads (SweepChunks) live for this call only
+    struct TeamRelease
+    {
+      std::unique_ptr<WorkerTeam> & team;
+      ~TeamRelease() { team.reset(); }
+    } teamRelease{ m_Team };
 
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
@@ -1087,7 +1095,7 @@ private:
     const size_t nChunks = std::max<size_t>(1, std::min<size_t>(64, count / 2048));
     const size_t chunk = count > 0 ? (count + nChunks - 1) / nChunks : 0;
     m_ChunkProposals.resize(nChunks);
-    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+    SweepChunks(nChunks, [&](size_t c) {
       auto & list = m_ChunkProposals[c];
       list.clear();
       const size_t end = std::min(count, (c + 1) * chunk);
@@ -1111,6 +1119,28 @@ private:
     {
       m_Proposals.insert(m_Proposals.end(), m_ChunkProposals[c].begin(), m_ChunkProposals[c].end());
     }
+  }
+
+  /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call (made at the first
+   * sub-sweep with more than one chunk): a sub-sweep lasts tens of microseconds in 2D, about what a loop through ITK's
+   * pool costs to start. Chunk outputs are combined in chunk order by the callers, as with ParallelForChunkIds. */
+  template <typename TBody>
+  void
+  SweepChunks(size_t nChunks, TBody && body)
+  {
+    if (nChunks <= 1 || WorkerTeam::ThreadsOf(m_Threader) <= 1)
+    {
+      for (size_t c = 0; c < nChunks; ++c)
+      {
+        body(c);
+      }
+      return;
+    }
+    if (!m_Team)
+    {
+      m_Team = std::make_unique<WorkerTeam>(WorkerTeam::ThreadsOf(m_Threader));
+    }
+    m_Team->Run(nChunks, body);
   }
 
   /** Active lists from scratch: every boundary pixel in its colour's scan list and its cell's gather list, every
@@ -1325,7 +1355,7 @@ private:
       m_ChunkProposals.resize(nChunks);
     }
     m_ChunkKept.resize(nChunks);
-    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+    SweepChunks(nChunks, [&](size_t c) {
       auto &       proposals = m_ChunkProposals[c];
       const size_t begin = std::min(n, c * chunk), end = std::min(n, begin + chunk);
       size_t       kept = begin;
@@ -1432,7 +1462,7 @@ private:
     {
       m_ChunkProposals.resize(nChunks);
     }
-    ParallelForChunkIds(m_Threader, nChunks, [&](size_t c) {
+    SweepChunks(nChunks, [&](size_t c) {
       auto & proposals = m_ChunkProposals[c];
       proposals.clear();
       const size_t end = std::min(n, (c + 1) * chunk);
@@ -1615,6 +1645,7 @@ private:
   GridType                           m_Grid;
   const float *                      m_Density{ nullptr };
   MultiThreaderBase *                m_Threader{ nullptr };
+  std::unique_ptr<WorkerTeam>        m_Team; // during Optimize only
   std::vector<LabelType>             m_Labels;
   std::vector<double>                m_Mass;
   std::vector<double>                m_Centroid;

@@ -1,0 +1,279 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#ifndef dmrWorkerTeam_h
+#define dmrWorkerTeam_h
+
+#include "itkMultiThreaderBase.h"
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstddef>
+#include <cstdint>
+#include <exception>
+#include <mutex>
+#include <thread>
+#include <type_traits>
+#include <vector>
+#if defined(__x86_64__) || defined(_M_X64) || defined(__i386__)
+#include <immintrin.h>
+#endif
+
+namespace itk
+{
+namespace dmr
+{
+/** A team of threads for many short parallel loops in a row, such as the CVT's sub-sweeps (tens of thousands of loops
+ * of tens of microseconds each in a 2D registration). ITK's pool hands every loop to its threads through queued tasks
+ * and futures, which costs about 20-35 us per loop on a 2-core machine; here the calling thread takes part and the
+ * other threads wait between loops by spinning for a short while (then by yielding, then on a condition variable),
+ * so a loop that follows closely on the last one starts within about a microsecond.
+ *
+ * The number of threads comes from ITK's threader (ThreadsOf), so ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS and the
+ * filters' work-unit settings keep control. Run(n, body) calls body(c) once for every chunk c in [0, n), the chunks
+ * claimed by the threads in turn: callers that need deterministic results combine per-chunk outputs in chunk order,
+ * as with ParallelForChunkIds. The first exception thrown by a body is rethrown by Run after all chunks ended. One
+ * Run at a time (the team is not meant to be shared between threads that call Run). */
+class WorkerTeam
+{
+public:
+  /** The threads of a team for `threader`: its work units, at most its maximum number of threads; 1 without one. */
+  static unsigned int
+  ThreadsOf(const MultiThreaderBase * threader)
+  {
+    if (threader == nullptr)
+    {
+      return 1;
+    }
+    const auto units = static_cast<unsigned int>(threader->GetNumberOfWorkUnits());
+    const auto threads = static_cast<unsigned int>(threader->GetMaximumNumberOfThreads());
+    return std::max(1u, std::min(units, threads));
+  }
+
+  /** numberOfThreads counts the calling thread; the other threads start here and end in the destructor. */
+  explicit WorkerTeam(unsigned int numberOfThreads)
+  {
+    const unsigned int workers = numberOfThreads > 1 ? numberOfThreads - 1 : 0;
+    m_Workers.reserve(workers);
+    try
+    {
+      for (unsigned int t = 0; t < workers; ++t)
+      {
+        m_Workers.emplace_back([this] { this->WorkerLoop(); });
+      }
+    }
+    catch (...)
+    {
+      this->Stop(); // a thread that cannot start: end the started ones, then report it
+      throw;
+    }
+  }
+
+  ~WorkerTeam() { this->Stop(); }
+
+  WorkerTeam(const WorkerTeam &) = delete;
+  WorkerTeam &
+  operator=(const WorkerTeam &) = delete;
+
+  unsigned int
+  GetNumberOfThreads() const
+  {
+    return static_cast<unsigned int>(m_Workers.size()) + 1;
+  }
+
+  template <typename TBody>
+  void
+  Run(size_t numberOfChunks, TBody && body)
+  {
+    if (m_Workers.empty() || numberOfChunks <= 1)
+    {
+      for (size_t c = 0; c < numberOfChunks; ++c)
+      {
+        body(c);
+      }
+      return;
+    }
+    using BodyType = std::remove_reference_t<TBody>;
+    m_Body = const_cast<void *>(static_cast<const void *>(&body));
+    m_Invoke = [](void * b, size_t c) { (*static_cast<BodyType *>(b))(c); };
+    m_NumberOfChunks = numberOfChunks;
+    m_NextChunk.store(0, std::memory_order_relaxed);
+    m_Finished.store(0, std::memory_order_relaxed);
+    m_Error = nullptr;
+    m_Failed.store(false, std::memory_order_relaxed);
+    {
+      // under the mutex, so that a worker that is about to sleep either sees the new loop or gets the notification
+      std::lock_guard<std::mutex> lock(m_Mutex);
+      m_Generation.fetch_add(1, std::memory_order_release);
+    }
+    m_Wake.notify_all();
+    this->Work();
+    const auto workers = static_cast<unsigned int>(m_Workers.size());
+    WaitUntil([&] { return m_Finished.load(std::memory_order_acquire) == workers; });
+    if (m_Error)
+    {
+      std::exception_ptr error = m_Error;
+      m_Error = nullptr;
+      std::rethrow_exception(error);
+    }
+  }
+
+private:
+  /** Spins about 20 us, yields up to about 200 us, then sleeps 50 us at a time until done() holds (the caller's wait
+   * for the other threads' last chunks, which are as short as its own). */
+  template <typename TDone>
+  static void
+  WaitUntil(TDone && done)
+  {
+    for (unsigned int i = 0; i < 256; ++i)
+    {
+      if (done())
+      {
+        return;
+      }
+      Pause();
+    }
+    const auto start = std::chrono::steady_clock::now();
+    while (!done())
+    {
+      if (std::chrono::steady_clock::now() - start < std::chrono::microseconds(200))
+      {
+        std::this_thread::yield();
+      }
+      else
+      {
+        std::this_thread::sleep_for(std::chrono::microseconds(50));
+      }
+    }
+  }
+
+  static void
+  Pause()
+  {
+#if defined(__x86_64__) || defined(_M_X64) || defined(__i386__)
+    _mm_pause();
+#else
+    std::this_thread::yield();
+#endif
+  }
+
+  void
+  Work()
+  {
+    for (;;)
+    {
+      const size_t c = m_NextChunk.fetch_add(1, std::memory_order_relaxed);
+      if (c >= m_NumberOfChunks)
+      {
+        return;
+      }
+      if (m_Failed.load(std::memory_order_relaxed))
+      {
+        continue; // an earlier chunk threw: claim the rest without running them
+      }
+      try
+      {
+        m_Invoke(m_Body, c);
+      }
+      catch (...)
+      {
+        std::lock_guard<std::mutex> lock(m_ErrorMutex);
+        if (!m_Error)
+        {
+          m_Error = std::current_exception();
+        }
+        m_Failed.store(true, std::memory_order_relaxed);
+      }
+    }
+  }
+
+  void
+  WorkerLoop()
+  {
+    uint64_t seen = 0;
+    for (;;)
+    {
+      uint64_t   generation = m_Generation.load(std::memory_order_acquire);
+      const auto start = std::chrono::steady_clock::now();
+      for (unsigned int i = 0; generation == seen && !m_Stop.load(std::memory_order_acquire); ++i)
+      {
+        // spin, then yield, then sleep on the condition variable: the CVT's loops follow each other within tens of
+        // microseconds while a sweep lasts, and not at all between the registration's iterations
+        if (i < 1024)
+        {
+          Pause();
+        }
+        else if (std::chrono::steady_clock::now() - start < std::chrono::microseconds(300))
+        {
+          std::this_thread::yield();
+        }
+        else
+        {
+          std::unique_lock<std::mutex> lock(m_Mutex);
+          m_Wake.wait(lock, [&] {
+            return m_Generation.load(std::memory_order_relaxed) != seen || m_Stop.load(std::memory_order_relaxed);
+          });
+        }
+        generation = m_Generation.load(std::memory_order_acquire);
+      }
+      if (generation == seen)
+      {
+        return; // stopped
+      }
+      seen = generation;
+      this->Work();
+      m_Finished.fetch_add(1, std::memory_order_release);
+    }
+  }
+
+  void
+  Stop()
+  {
+    {
+      std::lock_guard<std::mutex> lock(m_Mutex);
+      m_Stop.store(true, std::memory_order_release);
+    }
+    m_Wake.notify_all();
+    for (auto & t : m_Workers)
+    {
+      if (t.joinable())
+      {
+        t.join();
+      }
+    }
+    m_Workers.clear();
+  }
+
+  std::vector<std::thread> m_Workers;
+  std::mutex               m_Mutex;
+  std::condition_variable  m_Wake;
+  std::atomic<uint64_t>    m_Generation{ 0 };
+  std::atomic<bool>        m_Stop{ false };
+  std::atomic<size_t>      m_NextChunk{ 0 };
+  std::atomic<unsigned>    m_Finished{ 0 };
+  std::atomic<bool>        m_Failed{ false };
+  size_t                   m_NumberOfChunks{ 0 };
+  void *                   m_Body{ nullptr };
+  void (*m_Invoke)(void *, size_t){ nullptr };
+  std::mutex         m_ErrorMutex;
+  std::exception_ptr m_Error;
+};
+} // namespace dmr
+} // namespace itk
+
+#endif

@@ -1,0 +1,161 @@
+/*=========================================================================
+ *
+ *  DynamicMeshRegistration
+ *
+ *  Licensed under the Apache License, Version 2.0 (the "License");
+ *  you may not use this file except in compliance with the License.
+ *  You may obtain a copy of the License at
+ *
+ *         http://www.apache.org/licenses/LICENSE-2.0.txt
+ *
+ *  Unless required by applicable law or agreed to in writing, software
+ *  distributed under the License is distributed on an "AS IS" BASIS,
+ *  WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+ *  See the License for the specific language governing permissions and
+ *  limitations under the License.
+ *
+ *=========================================================================*/
+#include "dmrWorkerTeam.h"
+
+#include "gtest/gtest.h"
+
+#include <atomic>
+#include <chrono>
+#include <mutex>
+#include <set>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <vector>
+
+namespace
+{
+using itk::dmr::WorkerTeam;
+
+TEST(WorkerTeam, EveryChunkRunsOnceInManyLoopsInARow)
+{
+  // the CVT's pattern: tens of thousands of short loops, each read back before the next one starts
+  for (unsigned int threads : { 1u, 2u, 3u, 7u })
+  {
+    SCOPED_TRACE(std::to_string(threads) + " threads");
+    WorkerTeam team(threads);
+    EXPECT_EQ(team.GetNumberOfThreads(), threads);
+    std::vector<std::atomic<unsigned>> runs(64);
+    std::vector<unsigned>              value(64);
+    size_t                             wrong = 0;
+    const unsigned int loops = threads == 2 ? 20000 : 4000; // fewer where the threads may outnumber the cores
+    for (unsigned int loop = 0; loop < loops; ++loop)
+    {
+      const size_t chunks = loop % 9; // 0 and 1 chunk too
+      for (size_t c = 0; c < chunks; ++c)
+      {
+        runs[c].store(0);
+      }
+      team.Run(chunks, [&](size_t c) {
+        runs[c].fetch_add(1);
+        value[c] = loop * 64 + static_cast<unsigned>(c); // a plain write, read below: Run must publish it
+      });
+      for (size_t c = 0; c < chunks; ++c)
+      {
+        wrong += runs[c].load() != 1 || value[c] != loop * 64 + c;
+      }
+    }
+    EXPECT_EQ(wrong, 0u);
+  }
+}
+
+TEST(WorkerTeam, UsesItsThreads)
+{
+  // every chunk waits until all threads have entered a chunk: completes only if the other threads take part
+  WorkerTeam                team(3);
+  std::atomic<unsigned>     entered{ 0 };
+  std::set<std::thread::id> ids;
+  std::mutex                mutex;
+  team.Run(3, [&](size_t) {
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      ids.insert(std::this_thread::get_id());
+    }
+    entered.fetch_add(1);
+    const auto start = std::chrono::steady_clock::now();
+    while (entered.load() < 3 && std::chrono::steady_clock::now() - start < std::chrono::seconds(20))
+    {
+      std::this_thread::yield();
+    }
+  });
+  EXPECT_EQ(entered.load(), 3u);
+  EXPECT_EQ(ids.size(), 3u);
+  EXPECT_EQ(ids.count(std::this_thread::get_id()), 1u); // the calling thread takes part
+}
+
+TEST(WorkerTeam, WakesSleepingThreads)
+{
+  // pauses longer than the spinning and yielding phases: the other threads sleep on the condition variable between
+  // loops and must be woken for each
+  WorkerTeam team(2);
+  for (unsigned int loop = 0; loop < 5; ++loop)
+  {
+    std::this_thread::sleep_for(std::chrono::milliseconds(3));
+    std::atomic<unsigned>     done{ 0 };
+    std::set<std::thread::id> ids;
+    std::mutex                mutex;
+    team.Run(2, [&](size_t) {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        ids.insert(std::this_thread::get_id());
+      }
+      done.fetch_add(1);
+      const auto start = std::chrono::steady_clock::now();
+      while (done.load() < 2 && std::chrono::steady_clock::now() - start < std::chrono::seconds(20))
+      {
+        std::this_thread::yield();
+      }
+    });
+    EXPECT_EQ(done.load(), 2u);
+    EXPECT_EQ(ids.size(), 2u);
+  }
+}
+
+TEST(WorkerTeam, RethrowsTheFirstExceptionAndStaysUsable)
+{
+  WorkerTeam            team(4);
+  std::atomic<unsigned> ran{ 0 };
+  try
+  {
+    team.Run(40, [&](size_t c) {
+      ran.fetch_add(1);
+      if (c == 5)
+      {
+        throw std::runtime_error("chunk 5 failed");
+      }
+    });
+    FAIL() << "no exception";
+  }
+  catch (const std::runtime_error & e)
+  {
+    EXPECT_STREQ(e.what(), "chunk 5 failed");
+  }
+  EXPECT_GE(ran.load(), 1u);
+  EXPECT_LE(ran.load(), 40u);
+  std::vector<int> out(100, 0);
+  team.Run(out.size(), [&](size_t c) { out[c] = static_cast<int>(c); });
+  for (size_t c = 0; c < out.size(); ++c)
+  {
+    EXPECT_EQ(out[c], static_cast<int>(c));
+  }
+}
+
+TEST(WorkerTeam, TakesItsThreadsFromTheThreader)
+{
+  EXPECT_EQ(WorkerTeam::ThreadsOf(nullptr), 1u);
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(8);
+  EXPECT_EQ(WorkerTeam::ThreadsOf(threader), 2u);
+  threader->SetMaximumNumberOfThreads(4);
+  threader->SetNumberOfWorkUnits(3);
+  EXPECT_EQ(WorkerTeam::ThreadsOf(threader), 3u);
+  threader->SetNumberOfWorkUnits(1);
+  EXPECT_EQ(WorkerTeam::ThreadsOf(threader), 1u);
+}
+} // namespace
