@@ -22,6 +22,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <set>
 
@@ -153,6 +154,91 @@ TEST(ComposeFields, ComposingWithZeroGivesTheField)
   // Id o V = V
   itk::dmr::ComposeFields<2>(grid, zero.data(), w.data(), out.data(), nullptr);
   EXPECT_EQ(out, w);
+}
+
+/** out(x) = v(x) + w(x + v(x)) at one pixel, ComposeFields' definition written out (multilinear w, clamped). */
+template <unsigned int D>
+void
+ComposeOnePixel(const itk::dmr::Grid<D> & grid, const float * w, const float * v, size_t p, float * out)
+{
+  const auto idx = grid.Index(p);
+  double     c[D], s[D] = {};
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
+  }
+  itk::dmr::InterpolateAdd<D, D>(grid, w, c, 1.0, s);
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    out[k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
+  }
+}
+
+/** ComposeFields against ComposeOnePixel at every pixel, bit for bit (the CPU loop takes two pixels of a row at once
+ * where it can), into a separate output and in place (out = v), on 1 and 3 work units. */
+template <unsigned int D>
+void
+ExpectComposeEqualsOnePixelAtATime(const itk::dmr::Grid<D> &  grid,
+                                   const std::vector<float> & w,
+                                   const std::vector<float> & v)
+{
+  std::vector<float> expected(v.size());
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    ComposeOnePixel<D>(grid, w.data(), v.data(), p, &expected[p * D]);
+  }
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(3);
+  threader->SetNumberOfWorkUnits(3);
+  for (itk::MultiThreaderBase * t : { static_cast<itk::MultiThreaderBase *>(nullptr), threader.GetPointer() })
+  {
+    std::vector<float> out(v.size()), inPlace = v;
+    itk::dmr::ComposeFields<D>(grid, w.data(), v.data(), out.data(), t);
+    itk::dmr::ComposeFields<D>(grid, w.data(), inPlace.data(), inPlace.data(), t);
+    EXPECT_EQ(0, std::memcmp(out.data(), expected.data(), out.size() * sizeof(float)))
+      << (t ? "3 work units" : "serial");
+    EXPECT_EQ(0, std::memcmp(inPlace.data(), expected.data(), out.size() * sizeof(float)))
+      << (t ? "3 work units" : "serial") << ", in place";
+  }
+}
+
+TEST(ComposeFields, EveryPixelGetsTheValueItGetsAlone)
+{
+  std::mt19937                          engine(21u);
+  std::uniform_real_distribution<float> u(-3.0f, 3.0f);
+  // odd row length (one pixel alone at the end of every row), anisotropic spacing; v runs out of the grid (clamping)
+  // and is exactly 0 in a band (positions on the grid: corners of weight 0)
+  {
+    const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 37, 29 }, std::array<double, 2>{ 1.3, 0.7 });
+    std::vector<float>      w(grid.numberOfPixels * 2), v(w.size());
+    for (size_t i = 0; i < w.size(); ++i)
+    {
+      w[i] = u(engine);
+      v[i] = (i / 2) % 37 < 9 ? 0.0f : 2.0f * u(engine);
+    }
+    SCOPED_TRACE("2D");
+    ExpectComposeEqualsOnePixelAtATime<2>(grid, w, v);
+    // a non-finite value of w at corners of weight 0 of their row neighbours: those pixels stay finite
+    std::vector<float> wInf = w;
+    for (size_t p : { size_t(5 * 37 + 9), size_t(12 * 37 + 4), size_t(20 * 37 + 9) })
+    {
+      wInf[2 * p] = std::numeric_limits<float>::infinity();
+      wInf[2 * p + 1] = std::numeric_limits<float>::quiet_NaN();
+    }
+    SCOPED_TRACE("2D, non-finite values of w");
+    ExpectComposeEqualsOnePixelAtATime<2>(grid, wInf, v);
+  }
+  {
+    const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 15, 12, 9 }, std::array<double, 3>{ 1.0, 1.5, 2.5 });
+    std::vector<float>      w(grid.numberOfPixels * 3), v(w.size());
+    for (size_t i = 0; i < w.size(); ++i)
+    {
+      w[i] = u(engine);
+      v[i] = (i / 3) % 15 > 11 ? 0.0f : 2.5f * u(engine);
+    }
+    SCOPED_TRACE("3D");
+    ExpectComposeEqualsOnePixelAtATime<3>(grid, w, v);
+  }
 }
 
 TEST(ComposeFields, ComposesTranslationsAndSamplesAtTheDisplacedPoint)

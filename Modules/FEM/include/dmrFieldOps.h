@@ -18,6 +18,7 @@
 #ifndef dmrFieldOps_h
 #define dmrFieldOps_h
 
+#include "dmrDoublePair.h"
 #include "dmrGrid.h"
 #include <vector>
 #include <cmath>
@@ -36,20 +37,92 @@ template <unsigned int D>
 void
 ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * out, MultiThreaderBase * threader)
 {
-  ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
-    ForEachPixel(grid, b, e, [&](size_t p, const std::array<int64_t, D> & idx) {
-      double c[D], s[D] = {};
-      for (unsigned int k = 0; k < D; ++k)
+  auto pixel = [&](size_t p, const std::array<int64_t, D> & idx) {
+    double c[D], s[D] = {};
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
+    }
+    InterpolateAdd<D, D>(grid, w, c, 1.0, s);
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      out[p * D + k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
+    }
+  };
+#if DMR_HAVE_DOUBLE_PAIR
+  // Two neighbouring pixels of a row at once: `pixel`'s operations in the two lanes of SSE2 registers, the same doubles
+  // bit for bit (as in DensityFieldFilter's force loop). The pair also adds the corners of weight 0, which changes a
+  // sum only where such a corner holds a non-finite value; a pixel whose pair sum is not finite is computed again
+  // alone. Both lanes are read before either is written (out may alias v).
+  bool pairs = true;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    pairs = pairs && grid.size[k] < (size_t(1) << 31);
+  }
+  if (pairs)
+  {
+    const int64_t rowSize = static_cast<int64_t>(grid.size[0]);
+    ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
+      std::array<int64_t, D> idx = grid.Index(b);
+      for (size_t p = b; p < e;)
       {
-        c[k] = static_cast<double>(idx[k]) + static_cast<double>(v[p * D + k]) / grid.spacing[k];
-      }
-      InterpolateAdd<D, D>(grid, w, c, 1.0, s);
-      for (unsigned int k = 0; k < D; ++k)
-      {
-        out[p * D + k] = static_cast<float>(static_cast<double>(v[p * D + k]) + s[k]);
+        if (idx[0] + 1 < rowSize && p + 1 < e)
+        {
+          DoublePair c[D], s[D];
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            const DoublePair i = DoublePair::Of(static_cast<double>(idx[k]), static_cast<double>(idx[k] + (k == 0)));
+            c[k] = i + DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) / DoublePair::Both(grid.spacing[k]);
+            s[k] = DoublePair::Both(0.0);
+          }
+          ForEachInterpolationCornerPair<D>(grid, c, [&](size_t o0, size_t o1, DoublePair weight) {
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              s[k] += weight * DoublePair::OfFloats(w[o0 * D + k], w[o1 * D + k]);
+            }
+          });
+          DoublePair sum[D];
+          bool       finite[2] = { true, true };
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            sum[k] = DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) + s[k];
+            finite[0] = finite[0] && std::isfinite(s[k].Lane0());
+            finite[1] = finite[1] && std::isfinite(s[k].Lane1());
+          }
+          for (unsigned int lane = 0; lane < 2; ++lane)
+          {
+            if (!finite[lane])
+            {
+              std::array<int64_t, D> laneIdx = idx;
+              laneIdx[0] += lane;
+              pixel(p + lane, laneIdx);
+              continue;
+            }
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              out[(p + lane) * D + k] = static_cast<float>(lane == 0 ? sum[k].Lane0() : sum[k].Lane1());
+            }
+          }
+          p += 2;
+          idx[0] += 2;
+        }
+        else
+        {
+          pixel(p, idx);
+          ++p;
+          ++idx[0];
+        }
+        for (unsigned int k = 0; k + 1 < D && idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
+        {
+          idx[k] = 0;
+          ++idx[k + 1];
+        }
       }
     });
-  });
+    return;
+  }
+#endif
+  ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) { ForEachPixel(grid, b, e, pixel); });
 }
 
 /** The two bounds of ExponentialField, in pixel units: the largest displacement (max over pixels and axes of
