@@ -88,6 +88,23 @@ TEST(WorkerTeam, UsesItsThreads)
   EXPECT_EQ(ids.count(std::this_thread::get_id()), 1u); // the calling thread takes part
 }
 
+TEST(WorkerTeam, ALoopOfNChunksRunsOnAtMostNThreads)
+{
+  // the CVT's 2D lists take two chunks: on a team of five, the other three threads stay out
+  WorkerTeam                team(5);
+  std::set<std::thread::id> ids;
+  std::mutex                mutex;
+  for (unsigned int loop = 0; loop < 2000; ++loop)
+  {
+    team.Run(2, [&](size_t) {
+      std::lock_guard<std::mutex> lock(mutex);
+      ids.insert(std::this_thread::get_id());
+    });
+  }
+  EXPECT_LE(ids.size(), 2u);
+  EXPECT_EQ(ids.count(std::this_thread::get_id()), 1u);
+}
+
 TEST(WorkerTeam, WakesSleepingThreads)
 {
   // pauses longer than the spinning and yielding phases: the other threads sleep on the condition variable between

@@ -1121,14 +1121,17 @@ private:
     }
   }
 
-  /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call (made at the first
-   * sub-sweep with more than one chunk): a sub-sweep lasts tens of microseconds in 2D, about what a loop through ITK's
-   * pool costs to start. Chunk outputs are combined in chunk order by the callers, as with ParallelForChunkIds. */
+  /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call: a sub-sweep lasts tens
+   * of microseconds in 2D, about what a loop through ITK's pool costs to start. The team is made at the first sub-sweep
+   * with more than one chunk, with as many threads as it has chunks (at most the threader's), and made larger when a
+   * later one has more (2D lists take two chunks: a many-core machine keeps two threads busy, not all). Chunk outputs
+   * are combined in chunk order by the callers, as with ParallelForChunkIds. */
   template <typename TBody>
   void
   SweepChunks(size_t nChunks, TBody && body)
   {
-    if (nChunks <= 1 || WorkerTeam::ThreadsOf(m_Threader) <= 1)
+    const auto threads = static_cast<unsigned int>(std::min<size_t>(WorkerTeam::ThreadsOf(m_Threader), nChunks));
+    if (threads <= 1)
     {
       for (size_t c = 0; c < nChunks; ++c)
       {
@@ -1136,9 +1139,10 @@ private:
       }
       return;
     }
-    if (!m_Team)
+    if (!m_Team || m_Team->GetNumberOfThreads() < threads)
     {
-      m_Team = std::make_unique<WorkerTeam>(WorkerTeam::ThreadsOf(m_Threader));
+      m_Team.reset(); // its threads end before the larger team's start
+      m_Team = std::make_unique<WorkerTeam>(threads);
     }
     m_Team->Run(nChunks, body);
   }

@@ -47,8 +47,9 @@ namespace dmr
  * The number of threads comes from ITK's threader (ThreadsOf), so ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS and the
  * filters' work-unit settings keep control. Run(n, body) calls body(c) once for every chunk c in [0, n), the chunks
  * claimed by the threads in turn: callers that need deterministic results combine per-chunk outputs in chunk order,
- * as with ParallelForChunkIds. The first exception thrown by a body is rethrown by Run after all chunks ended. One
- * Run at a time (the team is not meant to be shared between threads that call Run). */
+ * as with ParallelForChunkIds. A loop of n chunks wakes at most n - 1 of the other threads. The first exception
+ * thrown by a body is rethrown by Run after all chunks ended. One Run at a time (the team is not meant to be shared
+ * between threads that call Run). */
 class WorkerTeam
 {
 public:
@@ -68,13 +69,14 @@ public:
   /** numberOfThreads counts the calling thread; the other threads start here and end in the destructor. */
   explicit WorkerTeam(unsigned int numberOfThreads)
   {
-    const unsigned int workers = numberOfThreads > 1 ? numberOfThreads - 1 : 0;
+    const unsigned int workers =
+      numberOfThreads > 1 ? static_cast<unsigned int>(std::min<uint64_t>(numberOfThreads - 1, HelperMask)) : 0;
     m_Workers.reserve(workers);
     try
     {
       for (unsigned int t = 0; t < workers; ++t)
       {
-        m_Workers.emplace_back([this] { this->WorkerLoop(); });
+        m_Workers.emplace_back([this, t] { this->WorkerLoop(t); });
       }
     }
     catch (...)
@@ -116,15 +118,18 @@ public:
     m_Finished.store(0, std::memory_order_relaxed);
     m_Error = nullptr;
     m_Failed.store(false, std::memory_order_relaxed);
+    // workers 0 .. helpers - 1 take part; the loop's number and its helper count are published in one word, so that a
+    // worker that reads it late (after this loop ended and the next began) sees the next loop's pair, never a mix
+    const auto helpers = static_cast<unsigned int>(std::min<size_t>(m_Workers.size(), numberOfChunks - 1));
+    ++m_Loop;
     {
       // under the mutex, so that a worker that is about to sleep either sees the new loop or gets the notification
       std::lock_guard<std::mutex> lock(m_Mutex);
-      m_Generation.fetch_add(1, std::memory_order_release);
+      m_Word.store(m_Loop << HelperBits | helpers, std::memory_order_release);
     }
     m_Wake.notify_all();
     this->Work();
-    const auto workers = static_cast<unsigned int>(m_Workers.size());
-    WaitUntil([&] { return m_Finished.load(std::memory_order_acquire) == workers; });
+    WaitUntil([&] { return m_Finished.load(std::memory_order_acquire) == helpers; });
     if (m_Error)
     {
       std::exception_ptr error = m_Error;
@@ -203,14 +208,14 @@ private:
   }
 
   void
-  WorkerLoop()
+  WorkerLoop(unsigned int id)
   {
-    uint64_t seen = 0;
+    uint64_t seen = 0; // the last loop this worker saw
     for (;;)
     {
-      uint64_t   generation = m_Generation.load(std::memory_order_acquire);
+      uint64_t   word = m_Word.load(std::memory_order_acquire);
       const auto start = std::chrono::steady_clock::now();
-      for (unsigned int i = 0; generation == seen && !m_Stop.load(std::memory_order_acquire); ++i)
+      for (unsigned int i = 0; (word >> HelperBits) == seen && !m_Stop.load(std::memory_order_acquire); ++i)
       {
         // spin, then yield, then sleep on the condition variable: the CVT's loops follow each other within tens of
         // microseconds while a sweep lasts, and not at all between the registration's iterations
@@ -226,18 +231,22 @@ private:
         {
           std::unique_lock<std::mutex> lock(m_Mutex);
           m_Wake.wait(lock, [&] {
-            return m_Generation.load(std::memory_order_relaxed) != seen || m_Stop.load(std::memory_order_relaxed);
+            return (m_Word.load(std::memory_order_relaxed) >> HelperBits) != seen ||
+                   m_Stop.load(std::memory_order_relaxed);
           });
         }
-        generation = m_Generation.load(std::memory_order_acquire);
+        word = m_Word.load(std::memory_order_acquire);
       }
-      if (generation == seen)
+      if ((word >> HelperBits) == seen)
       {
         return; // stopped
       }
-      seen = generation;
-      this->Work();
-      m_Finished.fetch_add(1, std::memory_order_release);
+      seen = word >> HelperBits;
+      if (id < (word & HelperMask))
+      {
+        this->Work();
+        m_Finished.fetch_add(1, std::memory_order_release);
+      }
     }
   }
 
@@ -259,10 +268,14 @@ private:
     m_Workers.clear();
   }
 
+  static constexpr unsigned int HelperBits = 24;
+  static constexpr uint64_t     HelperMask = (uint64_t(1) << HelperBits) - 1;
+
   std::vector<std::thread> m_Workers;
   std::mutex               m_Mutex;
   std::condition_variable  m_Wake;
-  std::atomic<uint64_t>    m_Generation{ 0 };
+  uint64_t                 m_Loop{ 0 }; // loops run so far (the caller's count)
+  std::atomic<uint64_t>    m_Word{ 0 }; // m_Loop << HelperBits | the loop's number of helping workers
   std::atomic<bool>        m_Stop{ false };
   std::atomic<size_t>      m_NextChunk{ 0 };
   std::atomic<unsigned>    m_Finished{ 0 };
