@@ -17,7 +17,8 @@
  *=========================================================================*/
 // dmrGenerateShapes: writes the paper's 2D test pairs (section 5.2) as NIfTI: fixed.nii.gz (target) and
 // moving.nii.gz (source); for circle-to-epsilon also fidelity_mesh.vtk, the static "high fidelity" mesh of the
-// comparison (CGAL Delaunay refinement of the target's contour, about --fidelity-nodes nodes).
+// comparison (CGAL Delaunay refinement of the target's contour, about --fidelity-nodes nodes). Two more pairs, circle
+// to a C and circle to a star (256 x 256), try the method on shapes beyond the paper's.
 #include "dmrSyntheticShapes.h"
 #include "dmrFidelityMesh.h"
 #include "dmrMeshFileIO.h"
@@ -41,10 +42,13 @@ main(int argc, char * argv[])
       const std::string a = argv[i];
       if (a == "--help" || a == "-h")
       {
-        std::cout << "usage: dmrGenerateShapes --case epsilon|leaf --output-dir D [--fidelity-nodes N]\n"
+        std::cout << "usage: dmrGenerateShapes --case epsilon|leaf|c|star --output-dir D [--fidelity-nodes N]\n"
                      "  writes D/fixed.nii.gz (target), D/moving.nii.gz (source) and, for epsilon, "
                      "D/fidelity_mesh.vtk (about N nodes, 8 <= N <= 100000, default 100); files appear only when all "
-                     "of them were written\n";
+                     "of them were written\n"
+                     "  epsilon: the paper's circle to epsilon (512 x 512); leaf: circle to leaf (1024 x 256);\n"
+                     "  c: a disk to a C, a ring cut open by a gap (256 x 256); star: a disk to a five-armed star "
+                     "(256 x 256)\n";
         return EXIT_SUCCESS;
       }
       if (i + 1 >= argc)
@@ -71,9 +75,9 @@ main(int argc, char * argv[])
         throw UsageError("unknown option " + a);
       }
     }
-    if ((shape != "epsilon" && shape != "leaf") || outputDir.empty())
+    if ((shape != "epsilon" && shape != "leaf" && shape != "c" && shape != "star") || outputDir.empty())
     {
-      throw UsageError("need --case epsilon|leaf and --output-dir D (see --help)");
+      throw UsageError("need --case epsilon|leaf|c|star and --output-dir D (see --help)");
     }
     using namespace itk::dmr;
     dmrtools::Staging       staging(outputDir); // a file named like the directory is a usage error
@@ -83,10 +87,20 @@ main(int argc, char * argv[])
       fixed = RenderShape(CircleToEpsilon::Width, CircleToEpsilon::Height, CircleToEpsilon::Target);
       moving = RenderShape(CircleToEpsilon::Width, CircleToEpsilon::Height, CircleToEpsilon::Source);
     }
-    else
+    else if (shape == "leaf")
     {
       fixed = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Target);
       moving = RenderShape(CircleToLeaf::Width, CircleToLeaf::Height, CircleToLeaf::Source);
+    }
+    else if (shape == "c")
+    {
+      fixed = RenderShape(CircleToC::Width, CircleToC::Height, CircleToC::Target);
+      moving = RenderShape(CircleToC::Width, CircleToC::Height, CircleToC::Source);
+    }
+    else
+    {
+      fixed = RenderShape(CircleToStar::Width, CircleToStar::Height, CircleToStar::Target);
+      moving = RenderShape(CircleToStar::Width, CircleToStar::Height, CircleToStar::Source);
     }
     // checked writes (ITK's NIfTI writer only prints when it cannot open or fill a file), committed together
     dmrtools::WriteImage(fixed.GetPointer(), staging.Path("fixed.nii.gz"));

@@ -272,6 +272,19 @@ generate)
   rc=$?
   check "dmrGenerateShapes into a file: exit 2 ($rc), one line on stderr ($(cat "$W/stderr")), nothing on stdout" \
     bash -c "test $rc = 2 && test \$(wc -l <'$W/stderr') = 1 && test ! -s '$W/stdout'"
+  # the two pairs beyond the paper's; an unknown case is refused with one line and writes nothing
+  for c in c star; do
+    "$GEN" --case "$c" --output-dir "$W/$c" >/dev/null
+    check "dmrGenerateShapes --case $c exits 0" test $? = 0
+    check "$c: fixed and moving share a 256x256 grid" \
+      bash -c "'$CHECK' same-grid '$W/$c/fixed.nii.gz' '$W/$c/moving.nii.gz' | grep -q '\[256, 256\]'"
+    d_pair=$("$DICE" "$W/$c/fixed.nii.gz" "$W/$c/moving.nii.gz")
+    check "$c: Dice(fixed, moving) = $d_pair in (0, 1)" awk_true "$d_pair > 0 && $d_pair < 1"
+  done
+  "$GEN" --case spiral --output-dir "$W/spiral" >"$W/stdout" 2>"$W/stderr"
+  rc=$?
+  check "dmrGenerateShapes --case spiral: exit 2 ($rc), one line on stderr ($(cat "$W/stderr")), no output" \
+    bash -c "test $rc = 2 && test \$(wc -l <'$W/stderr') = 1 && test ! -e '$W/spiral'"
   # bad input to dmrImageDice: one line, exit 2 (a NaN threshold gave 1, images on different grids a Dice, a missing
   # file three lines, a NaN voxel was counted as outside)
   "$CHECK" make-2d "$W/other-grid.nii.gz"

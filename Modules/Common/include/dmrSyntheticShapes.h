@@ -119,6 +119,52 @@ struct CircleToEpsilon
     return true;
   }
 };
+
+/** Two pairs beyond the paper's, for checking the method on shapes it was not shown on (not tuned to: the registration
+ * runs with the paper's settings). 256 x 256; the source is a disk of radius 60 in both. */
+struct CircleToC
+{
+  static constexpr unsigned int Width = 256, Height = 256;
+  static constexpr double       CentreX = 127.5, CentreY = 127.5, Radius = 60.0;
+  static constexpr double       OuterRadius = 90.0, InnerRadius = 45.0, Gap = 20.0;
+  static bool
+  Source(double x, double y)
+  {
+    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+  }
+  /** A "C": the ring between radii 45 and 90, cut open on its right by a gap 20 pixels wide. */
+  static bool
+  Target(double x, double y)
+  {
+    const double dx = x - CentreX, dy = y - CentreY, r2 = dx * dx + dy * dy;
+    if (r2 > OuterRadius * OuterRadius || r2 < InnerRadius * InnerRadius)
+    {
+      return false;
+    }
+    return !(dx > 0.0 && std::abs(dy) < Gap / 2.0);
+  }
+};
+
+struct CircleToStar
+{
+  static constexpr unsigned int Width = 256, Height = 256;
+  static constexpr double       CentreX = 127.5, CentreY = 127.5, Radius = 60.0;
+  static constexpr double       InnerRadius = 40.0, OuterRadius = 90.0;
+  static constexpr int          Arms = 5;
+  static bool
+  Source(double x, double y)
+  {
+    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+  }
+  /** A smooth five-armed star: r(theta) = 40 + 50 (1 + cos 5 theta) / 2. */
+  static bool
+  Target(double x, double y)
+  {
+    const double dx = x - CentreX, dy = y - CentreY;
+    const double r = InnerRadius + (OuterRadius - InnerRadius) * 0.5 * (1.0 + std::cos(Arms * std::atan2(dy, dx)));
+    return dx * dx + dy * dy <= r * r;
+  }
+};
 } // namespace dmr
 } // namespace itk
 
