@@ -139,8 +139,8 @@ public:
   }
 
 private:
-  /** Spins about 20 us, yields up to about 200 us, then sleeps 50 us at a time until done() holds (the caller's wait
-   * for the other threads' last chunks, which are as short as its own). */
+  /** Spins 256 pause instructions (a few microseconds), yields up to 200 us, then sleeps 50 us at a time until done()
+   * holds (the caller's wait for the other threads' last chunks, which are as short as its own). */
   template <typename TDone>
   static void
   WaitUntil(TDone && done)
@@ -217,8 +217,9 @@ private:
       const auto start = std::chrono::steady_clock::now();
       for (unsigned int i = 0; (word >> HelperBits) == seen && !m_Stop.load(std::memory_order_acquire); ++i)
       {
-        // spin, then yield, then sleep on the condition variable: the CVT's loops follow each other within tens of
-        // microseconds while a sweep lasts, and not at all between the registration's iterations
+        // spin (1024 pause instructions, 5-40 us by the CPU), then yield up to 300 us, then sleep on the condition
+        // variable: the CVT's loops follow each other within tens of microseconds while a sweep lasts, and not at
+        // all between the registration's iterations
         if (i < 1024)
         {
           Pause();
