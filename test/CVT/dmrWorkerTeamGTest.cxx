@@ -64,26 +64,36 @@ TEST(WorkerTeam, EveryChunkRunsOnceInManyLoopsInARow)
   }
 }
 
-TEST(WorkerTeam, UsesItsThreads)
+/** One loop of n chunks in which every chunk waits (up to 20 s) until all n have started: it ends at once only if n
+ * threads take part. Returns the threads that ran a chunk; `started` receives how many chunks started. */
+std::set<std::thread::id>
+RunChunksThatWaitForEachOther(WorkerTeam & team, unsigned int n, unsigned int & started)
 {
-  // every chunk waits until all threads have entered a chunk: completes only if the other threads take part
-  WorkerTeam                team(3);
   std::atomic<unsigned>     entered{ 0 };
   std::set<std::thread::id> ids;
   std::mutex                mutex;
-  team.Run(3, [&](size_t) {
+  team.Run(n, [&](size_t) {
     {
       std::lock_guard<std::mutex> lock(mutex);
       ids.insert(std::this_thread::get_id());
     }
     entered.fetch_add(1);
     const auto start = std::chrono::steady_clock::now();
-    while (entered.load() < 3 && std::chrono::steady_clock::now() - start < std::chrono::seconds(20))
+    while (entered.load() < n && std::chrono::steady_clock::now() - start < std::chrono::seconds(20))
     {
       std::this_thread::yield();
     }
   });
-  EXPECT_EQ(entered.load(), 3u);
+  started = entered.load();
+  return ids;
+}
+
+TEST(WorkerTeam, UsesItsThreads)
+{
+  WorkerTeam   team(3);
+  unsigned int started = 0;
+  const auto   ids = RunChunksThatWaitForEachOther(team, 3, started);
+  EXPECT_EQ(started, 3u);
   EXPECT_EQ(ids.size(), 3u);
   EXPECT_EQ(ids.count(std::this_thread::get_id()), 1u); // the calling thread takes part
 }
@@ -113,23 +123,9 @@ TEST(WorkerTeam, WakesSleepingThreads)
   for (unsigned int loop = 0; loop < 5; ++loop)
   {
     std::this_thread::sleep_for(std::chrono::milliseconds(3));
-    std::atomic<unsigned>     done{ 0 };
-    std::set<std::thread::id> ids;
-    std::mutex                mutex;
-    team.Run(2, [&](size_t) {
-      {
-        std::lock_guard<std::mutex> lock(mutex);
-        ids.insert(std::this_thread::get_id());
-      }
-      done.fetch_add(1);
-      const auto start = std::chrono::steady_clock::now();
-      while (done.load() < 2 && std::chrono::steady_clock::now() - start < std::chrono::seconds(20))
-      {
-        std::this_thread::yield();
-      }
-    });
-    EXPECT_EQ(done.load(), 2u);
-    EXPECT_EQ(ids.size(), 2u);
+    unsigned int started = 0;
+    EXPECT_EQ(RunChunksThatWaitForEachOther(team, 2, started).size(), 2u);
+    EXPECT_EQ(started, 2u);
   }
 }
 

@@ -58,6 +58,13 @@ RenderShape(unsigned int width, unsigned int height, const InsideFunction & insi
   return image;
 }
 
+/** (x, y) in the closed disk of radius r around (cx, cy): every pair's source. */
+inline bool
+InsideDisk(double x, double y, double cx, double cy, double r)
+{
+  return (x - cx) * (x - cx) + (y - cy) * (y - cy) <= r * r;
+}
+
 /** Circle-to-leaf (paper Fig. 3): 1024 x 256, source a disk of radius 60; target: the right half is the same
  * semicircle, the left half a semi-ellipse with semi-major axis 600 (and semi-minor axis 60). */
 struct CircleToLeaf
@@ -67,7 +74,7 @@ struct CircleToLeaf
   static bool
   Source(double x, double y)
   {
-    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+    return InsideDisk(x, y, CentreX, CentreY, Radius);
   }
   static bool
   Target(double x, double y)
@@ -93,7 +100,7 @@ struct CircleToEpsilon
   static bool
   Source(double x, double y)
   {
-    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+    return InsideDisk(x, y, CentreX, CentreY, Radius);
   }
   static bool
   Target(double x, double y)
@@ -130,7 +137,7 @@ struct CircleToC
   static bool
   Source(double x, double y)
   {
-    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+    return InsideDisk(x, y, CentreX, CentreY, Radius);
   }
   /** A "C": the ring between radii 45 and 90, cut open on its right by a gap 20 pixels wide. */
   static bool
@@ -154,7 +161,7 @@ struct CircleToStar
   static bool
   Source(double x, double y)
   {
-    return (x - CentreX) * (x - CentreX) + (y - CentreY) * (y - CentreY) <= Radius * Radius;
+    return InsideDisk(x, y, CentreX, CentreY, Radius);
   }
   /** A smooth five-armed star: r(theta) = 40 + 50 (1 + cos 5 theta) / 2. */
   static bool
