@@ -20,11 +20,19 @@
 #include "itkMultiThreaderBase.h"
 #include "gtest/gtest.h"
 #include <cmath>
+#include <fstream>
 #include <iostream>
 #include <limits>
 
 #include <random>
 #include <set>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <system_error>
+#include <thread>
+#include <unistd.h>
+#include <condition_variable>
+#include <mutex>
 
 namespace
 {
@@ -491,6 +499,84 @@ TEST(DiscreteCVT, ResultDoesNotDependOnTheThreader)
     EXPECT_EQ(serial.GetLabels(), parallel.GetLabels());
     EXPECT_EQ(serial.GetEnergy(), parallel.GetEnergy());
   }
+}
+
+TEST(DiscreteCVT, SweepsRunOnTheThreaderWhereNoMoreThreadsMayStart)
+{
+  // The sub-sweeps' team adds threads to ITK's pool. In a child process whose virtual memory limit leaves no room for
+  // another thread's stack (8 MiB; like ulimit -v or a container's limits), the team cannot start: the sweeps run on
+  // ITK's threader instead (its threads were started before the limit), with the labels of a run with the team.
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+  GTEST_SKIP() << "a sanitizer's shadow memory does not fit under a virtual memory limit";
+#endif
+  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 320, 320 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
+  auto                    threader = itk::MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(2);
+  threader->SetNumberOfWorkUnits(2);
+  itk::dmr::DiscreteCVT<2> reference;
+  reference.SetDensity(grid, density.data(), threader);
+  reference.ContractionInitialize(150, 4);
+  const auto referenceResult = reference.Optimize(0.0, 1000); // scans of 2048 or more pixels take two chunks
+  ASSERT_GT(referenceResult.swaps, 0u);
+
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0)
+  {
+    // exit codes: 0 same labels, 1 other labels, 2 the limit did not stop a thread, 3 no limit could be set, 4 threw
+    long          pages = 0;
+    std::ifstream statm("/proc/self/statm");
+    if (!(statm >> pages))
+    {
+      ::_exit(3);
+    }
+    const rlim_t bytes = static_cast<rlim_t>(pages) * static_cast<rlim_t>(::sysconf(_SC_PAGESIZE)) + (rlim_t(4) << 20);
+    const rlimit limit{ bytes, bytes };
+    if (::setrlimit(RLIMIT_AS, &limit) != 0)
+    {
+      ::_exit(3);
+    }
+    // glibc keeps the stacks of ended threads for new ones (the reference run's team ended in this process): hold
+    // threads until no more may start, so that the team needs a new stack
+    std::mutex               mutex;
+    std::condition_variable  released;
+    bool                     release = false;
+    std::vector<std::thread> held;
+    try
+    {
+      while (held.size() < 64)
+      {
+        held.emplace_back([&] {
+          std::unique_lock<std::mutex> lock(mutex);
+          released.wait(lock, [&] { return release; });
+        });
+      }
+      ::_exit(2);
+    }
+    catch (const std::system_error &)
+    {
+    }
+    try
+    {
+      itk::dmr::DiscreteCVT<2> limited;
+      limited.SetDensity(grid, density.data(), threader);
+      limited.ContractionInitialize(150, 4);
+      const auto result = limited.Optimize(0.0, 1000);
+      const bool same = result.sweeps == referenceResult.sweeps && result.swaps == referenceResult.swaps &&
+                        limited.GetLabels() == reference.GetLabels() && limited.GetEnergy() == reference.GetEnergy();
+      ::_exit(same ? 0 : 1);
+    }
+    catch (...)
+    {
+      ::_exit(4);
+    }
+  }
+  int status = 0;
+  ASSERT_EQ(::waitpid(child, &status, 0), child);
+  ASSERT_TRUE(WIFEXITED(status)) << "the child ended by signal " << (WIFSIGNALED(status) ? WTERMSIG(status) : 0);
+  EXPECT_EQ(WEXITSTATUS(status), 0) << "0 same labels, 1 other labels, 2 the limit did not stop a thread, 3 no limit, "
+                                       "4 an exception";
 }
 
 /** A density like the registration's: a sharp ridge along a sphere (a circle in 2D) of the given radius, centred in

@@ -30,6 +30,7 @@
 #include <functional>
 #include <limits>
 #include <memory>
+#include <system_error>
 
 namespace itk
 {
@@ -799,8 +800,13 @@ public:
     struct TeamRelease
     {
       std::unique_ptr<WorkerTeam> & team;
-      ~TeamRelease() { team.reset(); }
-    } teamRelease{ m_Team };
+      bool &                        unavailable;
+      ~TeamRelease()
+      {
+        team.reset();
+        unavailable = false;
+      }
+    } teamRelease{ m_Team, m_TeamUnavailable };
 
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
@@ -1124,8 +1130,10 @@ private:
   /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call: a sub-sweep lasts tens
    * of microseconds in 2D, about what a loop through ITK's pool costs to start. The team is made at the first sub-sweep
    * with more than one chunk, with as many threads as it has chunks (at most the threader's), and made larger when a
-   * later one has more (2D lists take two chunks: a many-core machine keeps two threads busy, not all). Chunk outputs
-   * are combined in chunk order by the callers, as with ParallelForChunkIds. */
+   * later one has more (2D lists take two chunks: a many-core machine keeps two threads busy, not all). Its threads
+   * come on top of ITK's pool: where the process may not start them (a limit on threads or on virtual memory), the
+   * rest of the call runs its sub-sweeps on ITK's threader instead, with the same result. Chunk outputs are combined
+   * in chunk order by the callers, as with ParallelForChunkIds. */
   template <typename TBody>
   void
   SweepChunks(size_t nChunks, TBody && body)
@@ -1139,10 +1147,22 @@ private:
       }
       return;
     }
-    if (!m_Team || m_Team->GetNumberOfThreads() < threads)
+    if (!m_TeamUnavailable && (!m_Team || m_Team->GetNumberOfThreads() < threads))
     {
       m_Team.reset(); // its threads end before the larger team's start
-      m_Team = std::make_unique<WorkerTeam>(threads);
+      try
+      {
+        m_Team = std::make_unique<WorkerTeam>(threads);
+      }
+      catch (const std::system_error &)
+      {
+        m_TeamUnavailable = true;
+      }
+    }
+    if (m_TeamUnavailable)
+    {
+      ParallelForChunkIds(m_Threader, nChunks, body);
+      return;
     }
     m_Team->Run(nChunks, body);
   }
@@ -1649,7 +1669,8 @@ private:
   GridType                           m_Grid;
   const float *                      m_Density{ nullptr };
   MultiThreaderBase *                m_Threader{ nullptr };
-  std::unique_ptr<WorkerTeam>        m_Team; // during Optimize only
+  std::unique_ptr<WorkerTeam>        m_Team;                     // during Optimize only
+  bool                               m_TeamUnavailable{ false }; // its threads could not start (this Optimize call)
   std::vector<LabelType>             m_Labels;
   std::vector<double>                m_Mass;
   std::vector<double>                m_Centroid;
