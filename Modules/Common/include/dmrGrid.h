@@ -234,6 +234,46 @@ ForEachPixel(const Grid<VDimension> & grid, size_t begin, size_t end, TBody && b
   }
 }
 
+/** ForEachPixel for loops that take two neighbouring pixels of a row at once (dmr::DoublePair): in pixel order over
+ * [begin, end), pair(p, idx) for p and p + 1 where both lie in the row and in the range and pairable(p) holds (the
+ * caller's condition on both pixels), one(p, idx) for a pixel taken alone. */
+template <unsigned int VDimension, typename TPairable, typename TPair, typename TOne>
+inline void
+ForEachPixelOrRowPair(const Grid<VDimension> & grid,
+                      size_t                   begin,
+                      size_t                   end,
+                      TPairable &&             pairable,
+                      TPair &&                 pair,
+                      TOne &&                  one)
+{
+  if (begin >= end)
+  {
+    return;
+  }
+  std::array<int64_t, VDimension> idx = grid.Index(begin);
+  const int64_t                   rowSize = static_cast<int64_t>(grid.size[0]);
+  for (size_t p = begin; p < end;)
+  {
+    if (idx[0] + 1 < rowSize && p + 1 < end && pairable(p))
+    {
+      pair(p, static_cast<const std::array<int64_t, VDimension> &>(idx));
+      p += 2;
+      idx[0] += 2;
+    }
+    else
+    {
+      one(p, static_cast<const std::array<int64_t, VDimension> &>(idx));
+      ++p;
+      ++idx[0];
+    }
+    for (unsigned int k = 0; k + 1 < VDimension && idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
+    {
+      idx[k] = 0;
+      ++idx[k + 1];
+    }
+  }
+}
+
 /** The corners of the multilinear interpolation at a continuous index, clamped to the border (zero-flux extension):
  * body(offset, weight) for every corner whose weight w x prod(frac or 1 - frac) is not zero, in a fixed corner order
  * (offset: the corner's pixel in the grid). */

@@ -798,34 +798,14 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateData()
         if (pairs)
         {
           // rows of the chunk in pixel order; two pixels at once where both are in the row, the chunk and the mask
-          std::array<int64_t, D> idx = grid.Index(pBegin);
-          const int64_t          rowSize = static_cast<int64_t>(grid.size[0]);
-          for (size_t p = pBegin; p < pEnd;)
-          {
-            if (maskBuffer && maskBuffer[p] == 0)
-            {
-              maskedPixel(p);
-              ++p;
-              ++idx[0];
-            }
-            else if (idx[0] + 1 < rowSize && p + 1 < pEnd && !(maskBuffer && maskBuffer[p + 1] == 0))
-            {
-              pixelPair(p, idx, acc);
-              p += 2;
-              idx[0] += 2;
-            }
-            else
-            {
-              pixel(p, idx, acc);
-              ++p;
-              ++idx[0];
-            }
-            for (unsigned int k = 0; k + 1 < D && idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
-            {
-              idx[k] = 0;
-              ++idx[k + 1];
-            }
-          }
+          // (`pixel` handles a masked pixel alone)
+          dmr::ForEachPixelOrRowPair(
+            grid,
+            pBegin,
+            pEnd,
+            [&](size_t p) { return !(maskBuffer && (maskBuffer[p] == 0 || maskBuffer[p + 1] == 0)); },
+            [&](size_t p, const std::array<int64_t, D> & idx) { pixelPair(p, idx, acc); },
+            [&](size_t p, const std::array<int64_t, D> & idx) { pixel(p, idx, acc); });
           partial[c] = acc;
           continue;
         }

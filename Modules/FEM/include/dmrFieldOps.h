@@ -61,63 +61,46 @@ ComposeFields(const Grid<D> & grid, const float * w, const float * v, float * ou
   }
   if (pairs)
   {
-    const int64_t rowSize = static_cast<int64_t>(grid.size[0]);
-    ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
-      std::array<int64_t, D> idx = grid.Index(b);
-      for (size_t p = b; p < e;)
+    auto pixelPair = [&](size_t p, const std::array<int64_t, D> & idx) {
+      DoublePair c[D], s[D];
+      for (unsigned int k = 0; k < D; ++k)
       {
-        if (idx[0] + 1 < rowSize && p + 1 < e)
+        const DoublePair i = DoublePair::Of(static_cast<double>(idx[k]), static_cast<double>(idx[k] + (k == 0)));
+        c[k] = i + DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) / DoublePair::Both(grid.spacing[k]);
+        s[k] = DoublePair::Both(0.0);
+      }
+      ForEachInterpolationCornerPair<D>(grid, c, [&](size_t o0, size_t o1, DoublePair weight) {
+        for (unsigned int k = 0; k < D; ++k)
         {
-          DoublePair c[D], s[D];
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            const DoublePair i = DoublePair::Of(static_cast<double>(idx[k]), static_cast<double>(idx[k] + (k == 0)));
-            c[k] = i + DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) / DoublePair::Both(grid.spacing[k]);
-            s[k] = DoublePair::Both(0.0);
-          }
-          ForEachInterpolationCornerPair<D>(grid, c, [&](size_t o0, size_t o1, DoublePair weight) {
-            for (unsigned int k = 0; k < D; ++k)
-            {
-              s[k] += weight * DoublePair::OfFloats(w[o0 * D + k], w[o1 * D + k]);
-            }
-          });
-          DoublePair sum[D];
-          bool       finite[2] = { true, true };
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            sum[k] = DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) + s[k];
-            finite[0] = finite[0] && std::isfinite(s[k].Lane0());
-            finite[1] = finite[1] && std::isfinite(s[k].Lane1());
-          }
-          for (unsigned int lane = 0; lane < 2; ++lane)
-          {
-            if (!finite[lane])
-            {
-              std::array<int64_t, D> laneIdx = idx;
-              laneIdx[0] += lane;
-              pixel(p + lane, laneIdx);
-              continue;
-            }
-            for (unsigned int k = 0; k < D; ++k)
-            {
-              out[(p + lane) * D + k] = static_cast<float>(lane == 0 ? sum[k].Lane0() : sum[k].Lane1());
-            }
-          }
-          p += 2;
-          idx[0] += 2;
+          s[k] += weight * DoublePair::OfFloats(w[o0 * D + k], w[o1 * D + k]);
         }
-        else
+      });
+      DoublePair sum[D];
+      bool       finite[2] = { true, true };
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        sum[k] = DoublePair::OfFloats(v[p * D + k], v[(p + 1) * D + k]) + s[k];
+        finite[0] = finite[0] && std::isfinite(s[k].Lane0());
+        finite[1] = finite[1] && std::isfinite(s[k].Lane1());
+      }
+      for (unsigned int lane = 0; lane < 2; ++lane)
+      {
+        if (!finite[lane])
         {
-          pixel(p, idx);
-          ++p;
-          ++idx[0];
+          std::array<int64_t, D> laneIdx = idx;
+          laneIdx[0] += lane;
+          pixel(p + lane, laneIdx);
+          continue;
         }
-        for (unsigned int k = 0; k + 1 < D && idx[k] == static_cast<int64_t>(grid.size[k]); ++k)
+        for (unsigned int k = 0; k < D; ++k)
         {
-          idx[k] = 0;
-          ++idx[k + 1];
+          out[(p + lane) * D + k] = static_cast<float>(lane == 0 ? sum[k].Lane0() : sum[k].Lane1());
         }
       }
+    };
+    ParallelForChunks(threader, grid.numberOfPixels, [&](size_t b, size_t e) {
+      ForEachPixelOrRowPair(
+        grid, b, e, [](size_t) { return true; }, pixelPair, pixel);
     });
     return;
   }
