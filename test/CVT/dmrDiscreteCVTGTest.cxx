@@ -481,11 +481,9 @@ TEST(DiscreteCVT, ResultDoesNotDependOnTheThreader)
        { std::tuple<size_t, size_t, size_t>{ 160, 40, 5 }, std::tuple<size_t, size_t, size_t>{ 320, 150, 1000 } })
   {
     SCOPED_TRACE(std::to_string(side) + " x " + std::to_string(side));
-    const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ side, side }, std::array<double, 2>{ 1.0, 1.0 });
-    const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
-    auto                    threader = itk::MultiThreaderBase::New();
-    threader->SetMaximumNumberOfThreads(2);
-    threader->SetNumberOfWorkUnits(2);
+    const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ side, side }, std::array<double, 2>{ 1.0, 1.0 });
+    const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
+    auto                     threader = itk::dmr::test::Threader(2, 2);
     itk::dmr::DiscreteCVT<2> serial, parallel;
     serial.SetDensity(grid, density.data(), nullptr);
     parallel.SetDensity(grid, density.data(), threader);
@@ -509,11 +507,9 @@ TEST(DiscreteCVT, SweepsRunOnTheThreaderWhereNoMoreThreadsMayStart)
 #if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
   GTEST_SKIP() << "a sanitizer's shadow memory does not fit under a virtual memory limit";
 #endif
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 320, 320 }, std::array<double, 2>{ 1.0, 1.0 });
-  const auto              density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
-  auto                    threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(2);
+  const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ 320, 320 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto               density = itk::dmr::test::RandomDensity(grid.numberOfPixels, 9u);
+  auto                     threader = itk::dmr::test::Threader(2, 2);
   itk::dmr::DiscreteCVT<2> reference;
   reference.SetDensity(grid, density.data(), threader);
   reference.ContractionInitialize(150, 4);
@@ -730,11 +726,9 @@ TEST(DiscreteCVT, ActiveListGivesTheFullScanLabels3D)
 TEST(DiscreteCVT, ActiveListGivesTheFullScanLabelsWithThreadsAndManyChunks)
 {
   // 2000 cells on 384x320: each colour's scan list is long enough to be split into several chunks
-  const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 384, 320 }, std::array<double, 2>{ 1.0, 1.0 });
-  const auto              density = RidgeDensity<2>(grid, 100.0, 0.0, 41u);
-  auto                    threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(2);
+  const itk::dmr::Grid<2>  grid(std::array<size_t, 2>{ 384, 320 }, std::array<double, 2>{ 1.0, 1.0 });
+  const auto               density = RidgeDensity<2>(grid, 100.0, 0.0, 41u);
+  auto                     threader = itk::dmr::test::Threader(2, 2);
   itk::dmr::DiscreteCVT<2> cvt;
   cvt.SetDensity(grid, density.data(), nullptr);
   cvt.ContractionInitialize(2000, 1);

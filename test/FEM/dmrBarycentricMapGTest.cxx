@@ -83,9 +83,7 @@ template <unsigned int D>
 void
 CheckEveryPixelLiesInOneElement(const itk::dmr::Grid<D> & grid, const itk::dmr::SimplexMesh<D> & mesh)
 {
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(2);
+  auto                        threader = itk::dmr::test::Threader(2, 2);
   itk::dmr::BarycentricMap<D> map;
   map.Build(grid, mesh, threader);
   const auto & elements = map.GetElements();
@@ -309,9 +307,7 @@ TEST(BarycentricMap, GatherIsTheSameHoweverThePixelsAreSplitAndWithinItsRounding
   }
   itk::dmr::BarycentricMap<2> map;
   map.Build(grid, mesh, nullptr);
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(3);
-  threader->SetNumberOfWorkUnits(3);
+  auto                threader = itk::dmr::test::Threader(3, 3);
   const double        scale = 0.77;
   std::vector<double> one, threaded;
   map.Gather(field.data(), scale, one, nullptr);
@@ -366,9 +362,7 @@ TEST(BarycentricMap, MeshThatDoesNotCoverTheImageThrows)
   itk::dmr::BarycentricMap<2> map;
   EXPECT_THROW(map.Build(grid, mesh, nullptr), itk::ExceptionObject);
   // the message names the first pixel outside the mesh (x = 12, y = 0), whatever the threads
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(3);
+  auto threader = itk::dmr::test::Threader(2, 3);
   try
   {
     map.Build(grid, mesh, threader);

@@ -45,20 +45,11 @@ GaussianBump(const itk::dmr::Grid<2> & grid, double amplitude, double sigma)
   return v;
 }
 
-itk::MultiThreaderBase::Pointer
-TwoWorkUnits()
-{
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(2);
-  return threader;
-}
-
 /** Checks exp(v) o exp(-v) = Id and det > 0; returns exp(v) in pixel units. */
 std::vector<double>
 CheckExpInverse(const itk::dmr::Grid<2> & grid)
 {
-  auto               threader = TwoWorkUnits();
+  auto               threader = itk::dmr::test::Threader(2, 2);
   const auto         v = GaussianBump(grid, 3.0, 8.0); // 3 px peak, < 1e-3 px at the border
   std::vector<float> minusV(v.size());
   for (size_t i = 0; i < v.size(); ++i)
@@ -187,9 +178,7 @@ ExpectComposeEqualsOnePixelAtATime(const itk::dmr::Grid<D> &  grid,
   {
     ComposeOnePixel<D>(grid, w.data(), v.data(), p, &expected[p * D]);
   }
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(3);
-  threader->SetNumberOfWorkUnits(3);
+  auto threader = itk::dmr::test::Threader(3, 3);
   for (itk::MultiThreaderBase * t : { static_cast<itk::MultiThreaderBase *>(nullptr), threader.GetPointer() })
   {
     std::vector<float> out(v.size()), inPlace = v;
@@ -562,7 +551,7 @@ TEST(FieldMaxima, DividingOnceEqualsDividingAtEveryPixel)
   std::mt19937                           rng(29);
   std::uniform_real_distribution<double> mantissa(-1.0, 1.0);
   std::uniform_int_distribution<int>     binade(-20, 12);
-  auto                                   threader = TwoWorkUnits();
+  auto                                   threader = itk::dmr::test::Threader(2, 2);
   auto                                   check = [&](const auto & grid, const std::vector<float> & v) {
     constexpr unsigned int D = std::remove_reference_t<decltype(grid)>::Dimension;
     double                 displacement = 0.0, neighbourDifference = 0.0;
@@ -718,9 +707,7 @@ TEST(InvertField, ASmoothFieldIsUndone)
   }
   std::cout << "largest |w(x) + v(x + w(x))|: " << largest << " pixel" << std::endl;
   EXPECT_LT(largest, 0.05);
-  auto threader = itk::MultiThreaderBase::New();
-  threader->SetMaximumNumberOfThreads(2);
-  threader->SetNumberOfWorkUnits(3);
+  auto               threader = itk::dmr::test::Threader(2, 3);
   std::vector<float> threaded(w.size());
   const auto         again = itk::dmr::InvertField<2>(grid, w.data(), threaded.data(), threader);
   EXPECT_EQ(again.iterations, result.iterations);

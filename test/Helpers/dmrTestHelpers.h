@@ -23,6 +23,7 @@
 #include "dmrSimplexMesh.h"
 #include "itkImage.h"
 #include "itkImageRegionIteratorWithIndex.h"
+#include "itkMultiThreaderBase.h"
 #include "itkProcessObject.h"
 #include <array>
 #include <cmath>
@@ -37,6 +38,17 @@ namespace dmr
 {
 namespace test
 {
+/** A threader of at most `threads` threads and `workUnits` work units, for the tests that compare threaded results
+ * with serial ones. */
+inline MultiThreaderBase::Pointer
+Threader(unsigned int threads, unsigned int workUnits)
+{
+  auto threader = MultiThreaderBase::New();
+  threader->SetMaximumNumberOfThreads(threads);
+  threader->SetNumberOfWorkUnits(workUnits);
+  return threader;
+}
+
 /** Success when process->Update() throws an itk::ExceptionObject whose description contains every one of `texts`. */
 inline ::testing::AssertionResult
 UpdateThrowsMentioning(ProcessObject * process, std::initializer_list<std::string> texts)
