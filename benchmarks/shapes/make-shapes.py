@@ -56,11 +56,13 @@ os.makedirs(f"{d}/blobs",exist_ok=True)
 write_mha(f"{d}/blobs/fixed.mha",W,H,[blobs(x,y) for y in range(H) for x in range(W)])
 write_mha(f"{d}/blobs/moving.mha",W,H,[blobs(*warp(x,y)) for y in range(H) for x in range(W)])
 # 3D: a sphere (moving) to an ellipsoid (fixed), 48 x 44 x 40 voxels of 1 x 1 x 1.2 mm, 4 samples per voxel
-def write_mha3(path, n, data, sp):
+def write_mha3(path, n, data, sp, origin=(0,0,0), direction=(1,0,0,0,1,0,0,0,1)):
     with open(path,'wb') as f:
         f.write(("ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
-                 "DimSize = %d %d %d\nElementSpacing = %g %g %g\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n"
-                 % (n[0], n[1], n[2], sp[0], sp[1], sp[2])).encode())
+                 "DimSize = %d %d %d\nElementSpacing = %g %g %g\nOffset = %g %g %g\nTransformMatrix = %s\n"
+                 "ElementType = MET_FLOAT\nElementDataFile = LOCAL\n"
+                 % (n[0], n[1], n[2], sp[0], sp[1], sp[2], origin[0], origin[1], origin[2],
+                    " ".join("%.17g" % v for v in direction))).encode())
         f.write(struct.pack('<%df' % len(data), *data))
 N3=(48,44,40); sp3=(1.0,1.0,1.2)
 def volume(ins, n=N3, sp=sp3):
@@ -85,3 +87,32 @@ def leaf3d(x,y,z):
 os.makedirs(f"{d}/leaf3d",exist_ok=True)
 write_mha3(f"{d}/leaf3d/moving.mha",NL,volume(lambda x,y,z:(x-64)**2+(y-24)**2+(z-24)**2<=144,NL,spL),spL)
 write_mha3(f"{d}/leaf3d/fixed.mha",NL,volume(leaf3d,NL,spL),spL)
+# 30th session: motions the pairs above do not have (a rotation, two objects moving apart, a strong compression, a
+# neck, a small image) and a 3D pair on an oblique grid
+def rotsquare(t):
+    c, sn = math.cos(t), math.sin(t)
+    return lambda x,y: abs((x-cx)*c+(y-cy)*sn)<=50 and abs(-(x-cx)*sn+(y-cy)*c)<=50
+def disks(*cs): return lambda x,y: any((x-a)**2+(y-b)**2<=r*r for (a,b,r) in cs)
+def dumbbell(x,y):
+    return (x-cx+55)**2+(y-cy)**2<=40**2 or (x-cx-55)**2+(y-cy)**2<=40**2 or (abs(x-cx)<=55 and abs(y-cy)<=12)
+for name,(src,dst) in {"rotsquare":(rotsquare(0.0),rotsquare(math.radians(30))),
+                       "twodisks":(disks((80,128,35),(176,128,35)),disks((70,110,35),(186,150,35))),
+                       "shrink":(circle(90),circle(50)),
+                       "dumbbell":(circle(70),dumbbell)}.items():
+    os.makedirs(f"{d}/{name}",exist_ok=True)
+    write_mha(f"{d}/{name}/moving.mha",W,H,shape(W,H,src))
+    write_mha(f"{d}/{name}/fixed.mha",W,H,shape(W,H,dst))
+def smallellipse(x,y):
+    c, sn = math.cos(0.3), math.sin(0.3)
+    u, v = (x-32)*c+(y-32)*sn, -(x-32)*sn+(y-32)*c
+    return (u/22)**2+(v/10)**2<=1
+os.makedirs(f"{d}/small",exist_ok=True)
+write_mha(f"{d}/small/moving.mha",64,64,shape(64,64,lambda x,y:(x-32)**2+(y-32)**2<=15**2))
+write_mha(f"{d}/small/fixed.mha",64,64,shape(64,64,smallellipse))
+# 3D on an oblique grid: 80 x 70 x 30 voxels of 0.8 x 0.9 x 2.5 mm, rotated by 30 degrees about z; a sphere of radius
+# 18 mm to an ellipsoid 24 x 14 x 22 mm moved by 4 mm (positions in the grid frame, mm)
+NO=(80,70,30); spO=(0.8,0.9,2.5); c30, s30 = math.cos(math.radians(30)), math.sin(math.radians(30))
+os.makedirs(f"{d}/oblique3d",exist_ok=True)
+for name, ins in (("moving", lambda x,y,z:(x-32)**2+(y-31)**2+(z-37)**2<=18**2),
+                  ("fixed", lambda x,y,z:((x-36)/24)**2+((y-31)/14)**2+((z-37)/22)**2<=1)):
+    write_mha3(f"{d}/oblique3d/{name}.mha",NO,volume(ins,NO,spO),spO,(-20,10,5),(c30,s30,0,-s30,c30,0,0,0,1))

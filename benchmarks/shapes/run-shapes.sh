@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # Registers every pair of make-shapes.py with the tool's defaults (100 or 400 iterations, dynamic and regular mesh) and
 # prints one line per run: exit code, the tool's summary and the Dice of the warped moving image with the fixed image.
-# Usage: run-shapes.sh BIN_DIR OUT_DIR [extra tool options...]
+# Usage: run-shapes.sh BIN_DIR OUT_DIR [extra tool options...]; DMR_SHAPES="case ..." runs only those cases
 set -u -o pipefail
 B=$1 O=$2; shift 2
 here=$(cd "$(dirname "$0")" && pwd)
 python3 "$here/make-shapes.py" "$O/data" || exit 1
-for c in star cshape ellipse aniso blobs sphere3d leaf3d; do
-  threed=0; case $c in sphere3d | leaf3d) threed=1 ;; esac
+for c in ${DMR_SHAPES:-star cshape ellipse aniso blobs sphere3d leaf3d rotsquare twodisks shrink dumbbell small oblique3d}; do
+  threed=0; case $c in sphere3d | leaf3d | oblique3d) threed=1 ;; esac
   threshold=127.5; [ $threed = 1 ] && threshold=50
   for m in dynamic regular; do
     for it in 100 400; do
