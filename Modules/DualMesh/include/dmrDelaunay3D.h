@@ -31,7 +31,7 @@ class MultiThreaderBase;
 namespace dmr
 {
 /** Margin of BlockDelaunay3D as Delaunay3D uses it, in mean node spacings. A smaller one is faster while no block
- * needs a second round (1.5 took 15-25 % less time on the node sets of 14 thorax256 iterations on 16 threads), but a
+ * needs a second round (1.5 took about 20 % less time on the node sets of 14 thorax256 iterations on 16 threads), but a
  * graded node set (Delaunay3D's test) already needs one at 1.5, and the dynamic mesh is graded by design
  * (docs/benchmarks.md, 30th session). */
 constexpr double DefaultBlockMargin = 2.0;
