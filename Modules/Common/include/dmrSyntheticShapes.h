@@ -58,24 +58,25 @@ RenderShape(unsigned int width, unsigned int height, const InsideFunction & insi
   return image;
 }
 
-/** (x, y) in the closed disk of radius r around (cx, cy): every pair's source. */
-inline bool
-InsideDisk(double x, double y, double cx, double cy, double r)
+/** The source of every pair: (x, y) in the closed disk of radius TPair::Radius around (TPair::CentreX,
+ * TPair::CentreY). */
+template <typename TPair>
+struct DiskSource
 {
-  return (x - cx) * (x - cx) + (y - cy) * (y - cy) <= r * r;
-}
-
-/** Circle-to-leaf (paper Fig. 3): 1024 x 256, source a disk of radius 60; target: the right half is the same
- * semicircle, the left half a semi-ellipse with semi-major axis 600 (and semi-minor axis 60). */
-struct CircleToLeaf
-{
-  static constexpr unsigned int Width = 1024, Height = 256;
-  static constexpr double       CentreX = 700.0, CentreY = 127.5, Radius = 60.0, SemiMajor = 600.0;
   static bool
   Source(double x, double y)
   {
-    return InsideDisk(x, y, CentreX, CentreY, Radius);
+    const double dx = x - TPair::CentreX, dy = y - TPair::CentreY;
+    return dx * dx + dy * dy <= TPair::Radius * TPair::Radius;
   }
+};
+
+/** Circle-to-leaf (paper Fig. 3): 1024 x 256, source a disk of radius 60; target: the right half is the same
+ * semicircle, the left half a semi-ellipse with semi-major axis 600 (and semi-minor axis 60). */
+struct CircleToLeaf : DiskSource<CircleToLeaf>
+{
+  static constexpr unsigned int Width = 1024, Height = 256;
+  static constexpr double       CentreX = 700.0, CentreY = 127.5, Radius = 60.0, SemiMajor = 600.0;
   static bool
   Target(double x, double y)
   {
@@ -91,17 +92,12 @@ struct CircleToLeaf
 /** Circle-to-epsilon (paper Figs. 4, 5): 512 x 512, source a disk of radius 120; target an epsilon-like shape: a disk
  * of radius 130 with two elliptical bays on its right side, each joined to the outside by an entrance 5 pixels wide
  * (the narrow passages that trap static meshes). */
-struct CircleToEpsilon
+struct CircleToEpsilon : DiskSource<CircleToEpsilon>
 {
   static constexpr unsigned int Width = 512, Height = 512;
   static constexpr double       CentreX = 255.5, CentreY = 255.5, Radius = 120.0;
   static constexpr double       OuterRadius = 150.0, BayOffsetX = 55.0, BayOffsetY = 62.0, BayA = 80.0, BayB = 40.0;
   static constexpr double       Entrance = 5.0;
-  static bool
-  Source(double x, double y)
-  {
-    return InsideDisk(x, y, CentreX, CentreY, Radius);
-  }
   static bool
   Target(double x, double y)
   {
@@ -129,16 +125,11 @@ struct CircleToEpsilon
 
 /** Two pairs beyond the paper's, for checking the method on shapes it was not shown on (not tuned to: the registration
  * runs with the paper's settings). 256 x 256; the source is a disk of radius 60 in both. */
-struct CircleToC
+struct CircleToC : DiskSource<CircleToC>
 {
   static constexpr unsigned int Width = 256, Height = 256;
   static constexpr double       CentreX = 127.5, CentreY = 127.5, Radius = 60.0;
   static constexpr double       OuterRadius = 90.0, InnerRadius = 45.0, Gap = 20.0;
-  static bool
-  Source(double x, double y)
-  {
-    return InsideDisk(x, y, CentreX, CentreY, Radius);
-  }
   /** A "C": the ring between radii 45 and 90, cut open on its right by a gap 20 pixels wide. */
   static bool
   Target(double x, double y)
@@ -152,17 +143,12 @@ struct CircleToC
   }
 };
 
-struct CircleToStar
+struct CircleToStar : DiskSource<CircleToStar>
 {
   static constexpr unsigned int Width = 256, Height = 256;
   static constexpr double       CentreX = 127.5, CentreY = 127.5, Radius = 60.0;
   static constexpr double       InnerRadius = 40.0, OuterRadius = 90.0;
   static constexpr int          Arms = 5;
-  static bool
-  Source(double x, double y)
-  {
-    return InsideDisk(x, y, CentreX, CentreY, Radius);
-  }
   /** A smooth five-armed star: r(theta) = 40 + 50 (1 + cos 5 theta) / 2. */
   static bool
   Target(double x, double y)
