@@ -40,14 +40,17 @@ constexpr double DefaultBlockMargin = 2.0;
  * hull of the nodes. Nodes at the same position are merged: tetrahedra refer to the first node at a position. Every
  * tetrahedron is positively oriented (det [x1 - x0, x2 - x0, x3 - x0] > 0 in exact arithmetic); no tetrahedron has
  * exactly zero volume, but near-coplanar nodes can give near-flat ones (see NonDegenerateDelaunay3D).
- * With a threader of two or more threads, node sets whose convex hull is their bounding box (its 8 corners are nodes,
- * as in the dual mesh) go through BlockDelaunay3D; the others, and those whose blocks cannot vouch for their result,
- * through one TetGen 1.5 run (TetGenDelaunay3D). Both write each tetrahedron with its vertices ascending (the last two
- * swapped where that keeps it positive) and sort the list, so for nodes without cospherical subsets (whose Delaunay
- * tetrahedralization is unique) the output is the same whichever path and however many threads.
+ * Node sets whose convex hull is their bounding box (its 8 corners are nodes, as in the dual mesh) go through
+ * BlockDelaunay3D with a threader of two or more threads, otherwise (one thread, or blocks that cannot vouch for their
+ * result) through one CGAL run, the triangulation the blocks take their tetrahedra from: where cospherical nodes leave
+ * a choice of tetrahedralization, CGAL's symbolic perturbation decides from the nodes alone, so the output is the same
+ * however many threads. Other node sets go through one TetGen 1.5 run (TetGenDelaunay3D), which perturbs otherwise:
+ * for nodes without cospherical subsets (whose Delaunay tetrahedralization is unique) it gives the same list. Every
+ * path writes each tetrahedron with its vertices ascending (the last two swapped where that keeps it positive) and
+ * sorts the list.
  * Fewer than 4 distinct nodes, or all of them within 1e-12 of their extent from one plane, give no tetrahedra
- * (TetGen 1.5 crashes on a coplanar set). Throws an itk::ExceptionObject when TetGen fails. Returns the number of
- * nodes merged into an earlier one. (TetGen stays out of every public header: this file is its only interface.)
+ * (TetGen 1.5 crashes on a coplanar set). Throws an itk::ExceptionObject when TetGen or CGAL fails. Returns the number
+ * of nodes merged into an earlier one. (TetGen stays out of every public header: this file is its only interface.)
  *
  * Why no constraints: the 2D dual mesh inserts the inner-cell adjacency edges as constraints of a CGAL constrained
  * Delaunay triangulation (paper 4.6). TetGen 1.5 takes constraints only as a piecewise linear complex of facets
@@ -59,7 +62,7 @@ Delaunay3D(const std::vector<double> &           xyz,
            std::vector<std::array<int32_t, 4>> & tetrahedra,
            MultiThreaderBase *                   threader = nullptr);
 
-/** Delaunay3D by one TetGen 1.5 run, whatever the nodes (Delaunay3D's fallback). */
+/** Delaunay3D by one TetGen 1.5 run, whatever the nodes (Delaunay3D's path for hulls other than the bounding box). */
 DynamicMeshRegistration_EXPORT size_t
 TetGenDelaunay3D(const std::vector<double> & xyz, std::vector<std::array<int32_t, 4>> & tetrahedra);
 

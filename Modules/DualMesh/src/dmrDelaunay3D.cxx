@@ -245,6 +245,46 @@ CanonicalTetrahedron(std::array<int32_t, 4> t)
   return t;
 }
 
+/** Whether the convex hull of the distinct nodes `unique` is their bounding box [lo, hi] (its 8 corners are nodes,
+ * every extent positive), as for the dual mesh's nodes. */
+bool
+HullIsBoundingBox(const std::vector<double> & xyz, const std::vector<int32_t> & unique, double * lo, double * hi)
+{
+  if (unique.empty())
+  {
+    return false;
+  }
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    lo[k] = hi[k] = xyz[3 * unique[0] + k];
+  }
+  for (int32_t i : unique)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      lo[k] = std::min(lo[k], xyz[3 * i + k]);
+      hi[k] = std::max(hi[k], xyz[3 * i + k]);
+    }
+  }
+  bool corner[8] = {};
+  for (int32_t i : unique)
+  {
+    unsigned int mask = 0;
+    bool         atCorner = true;
+    for (unsigned int k = 0; k < 3 && atCorner; ++k)
+    {
+      const double x = xyz[3 * i + k];
+      atCorner = x == lo[k] || x == hi[k];
+      mask |= x == hi[k] ? 1u << k : 0u;
+    }
+    if (atCorner)
+    {
+      corner[mask] = true;
+    }
+  }
+  return std::all_of(corner, corner + 8, [](bool c) { return c; }) && hi[0] > lo[0] && hi[1] > lo[1] && hi[2] > lo[2];
+}
+
 using BlockKernel = CGAL::Exact_predicates_inexact_constructions_kernel;
 using BlockVertex = CGAL::Triangulation_vertex_base_with_info_3<int32_t, BlockKernel>;
 using BlockCell = CGAL::Triangulation_cell_base_with_info_3<int32_t, BlockKernel>;
@@ -283,41 +323,11 @@ BlockDelaunay(const std::vector<double> &           xyz,
     return false;
   }
   double lo[3], hi[3];
-  for (unsigned int k = 0; k < 3; ++k)
-  {
-    lo[k] = hi[k] = xyz[3 * unique[0] + k];
-  }
-  for (int32_t i : unique)
-  {
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      lo[k] = std::min(lo[k], xyz[3 * i + k]);
-      hi[k] = std::max(hi[k], xyz[3 * i + k]);
-    }
-  }
-  // the convex hull must be the bounding box: its 8 corners are nodes
-  bool corner[8] = {};
-  for (int32_t i : unique)
-  {
-    unsigned int mask = 0;
-    bool         atCorner = true;
-    for (unsigned int k = 0; k < 3 && atCorner; ++k)
-    {
-      const double x = xyz[3 * i + k];
-      atCorner = x == lo[k] || x == hi[k];
-      mask |= x == hi[k] ? 1u << k : 0u;
-    }
-    if (atCorner)
-    {
-      corner[mask] = true;
-    }
-  }
-  const double extent[3] = { hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2] };
-  if (!std::all_of(corner, corner + 8, [](bool c) { return c; }) || !(extent[0] > 0.0) || !(extent[1] > 0.0) ||
-      !(extent[2] > 0.0))
+  if (!HullIsBoundingBox(xyz, unique, lo, hi))
   {
     return false;
   }
+  const double extent[3] = { hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2] };
   const double volume = extent[0] * extent[1] * extent[2];
   const double spacing = std::cbrt(volume / static_cast<double>(n)); // mean node spacing
   // The layout with the shortest critical path on the threader's threads (at least 2): waves of blocks times the
@@ -553,7 +563,7 @@ BlockDelaunay(const std::vector<double> &           xyz,
       {
         runBlock(todo[a], margins[todo[a]]);
       }
-      catch (...) // e.g. out of memory: TetGen's fallback reports what it meets
+      catch (...) // e.g. out of memory: the one-run fallback reports what it meets
       {
         results[todo[a]].failed = true;
       }
@@ -625,6 +635,43 @@ BlockDelaunay(const std::vector<double> &           xyz,
     std::inplace_merge(tetrahedra.begin(), tetrahedra.begin() + middle, tetrahedra.end());
   }
   return true;
+}
+
+/** One CGAL run on the distinct nodes `unique` (at least 4, spanning space): the triangulation every block of
+ * BlockDelaunay takes its tetrahedra from (CGAL's symbolic perturbation, which decides among the tetrahedralizations of
+ * cospherical nodes, depends on the nodes only, not on their order or on which others are in the run); canonical
+ * tetrahedra, sorted. */
+void
+CGALOnUnique(const std::vector<double> &           xyz,
+             const std::vector<int32_t> &          unique,
+             std::vector<std::array<int32_t, 4>> & tetrahedra)
+{
+  try
+  {
+    std::vector<std::pair<BlockKernel::Point_3, int32_t>> points;
+    points.reserve(unique.size());
+    for (int32_t i : unique)
+    {
+      points.emplace_back(BlockKernel::Point_3(xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]), i);
+    }
+    BlockTriangulation dt(points.begin(), points.end());
+    tetrahedra.clear();
+    tetrahedra.reserve(dt.number_of_finite_cells());
+    for (auto c = dt.finite_cells_begin(); c != dt.finite_cells_end(); ++c)
+    {
+      std::array<int32_t, 4> t;
+      for (int v = 0; v < 4; ++v)
+      {
+        t[v] = c->vertex(v)->info();
+      }
+      tetrahedra.push_back(CanonicalTetrahedron(t));
+    }
+  }
+  catch (const std::exception & e)
+  {
+    itkGenericExceptionMacro("the Delaunay tetrahedralization of " << unique.size() << " nodes failed: " << e.what());
+  }
+  std::sort(tetrahedra.begin(), tetrahedra.end());
 }
 
 /** One TetGen run on the distinct nodes `unique` (at least 4, spanning space): canonical tetrahedra, sorted. */
@@ -703,10 +750,17 @@ Delaunay3D(const std::vector<double> &           xyz,
   {
     return merged;
   }
-  // blocks only where they can run side by side
-  if (Parallelism(threader) <= 1 || !BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
+  // A box hull (the dual mesh): blocks where they can run side by side, else (one thread, too few nodes, or blocks
+  // that cannot vouch for their result) the one CGAL run the blocks take their tetrahedra from, so that the list does
+  // not depend on the threads where cospherical nodes leave a choice. Other hulls: one TetGen run.
+  double lo[3], hi[3];
+  if (!HullIsBoundingBox(xyz, unique, lo, hi))
   {
     TetGenOnUnique(xyz, unique, tetrahedra);
+  }
+  else if (Parallelism(threader) <= 1 || !BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
+  {
+    CGALOnUnique(xyz, unique, tetrahedra);
   }
   return merged;
 }
