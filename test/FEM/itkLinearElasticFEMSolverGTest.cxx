@@ -16,6 +16,7 @@
  *
  *=========================================================================*/
 #include "itkLinearElasticFEMSolver.h"
+#include "dmrDelaunay3D.h"
 #include "dmrDualMeshPhantom.h"
 #include "dmrObjectChecks.h"
 #include "dmrTestHelpers.h"
@@ -425,6 +426,90 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveSolvesTheSystem)
   EXPECT_EQ(u, zero);
 }
 
+/** The GPU-order CG's loops on a threader give the result of one thread, bit for bit, on a mesh whose nodes have from
+ * a few to more than 32 incident elements (a node's sum then takes more than one element per lane): the Delaunay
+ * tetrahedralization of random nodes in a box, border nodes fixed. */
+TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
+  std::mt19937            rng(20261124);
+  std::vector<double>     xyz;
+  for (unsigned int q = 0; q < 8; ++q)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      xyz.push_back((q >> k) & 1u ? static_cast<double>(grid.size[k] - 1) * grid.spacing[k] : 0.0);
+    }
+  }
+  for (int i = 0; i < 700; ++i)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      // some nodes on the faces (fixed), the others inside
+      const double extent = static_cast<double>(grid.size[k] - 1) * grid.spacing[k];
+      const double t = std::uniform_real_distribution<double>(0.0, 1.0)(rng);
+      xyz.push_back(i % 7 == k ? 0.0 : (i % 11 == k ? extent : t * extent));
+    }
+  }
+  itk::dmr::SimplexMesh<3> mesh;
+  mesh.nodes = xyz;
+  std::vector<std::array<int32_t, 4>> tetrahedra;
+  itk::dmr::Delaunay3D(xyz, tetrahedra);
+  mesh.elements = tetrahedra;
+  mesh.OrientPositively();
+  mesh.MarkBorderNodes(grid);
+  std::vector<int> incident(mesh.NumberOfNodes(), 0);
+  for (const auto & t : mesh.elements)
+  {
+    for (const int32_t v : t)
+    {
+      ++incident[v];
+    }
+  }
+  ASSERT_GT(*std::max_element(incident.begin(), incident.end()), 32);
+  std::vector<double> f(mesh.NumberOfNodes() * 3);
+  for (double & v : f)
+  {
+    v = std::uniform_real_distribution<double>(-1.0, 1.0)(rng);
+  }
+  itk::dmr::ElasticCG<3> cg;
+  cg.SetSystem(mesh, lambda, mu);
+  std::vector<double> serial(f.size());
+  size_t              serialProducts = 0;
+  ASSERT_TRUE(cg.Solve(f.data(), serial.data(), 1e-10, 5000, serialProducts));
+  EXPECT_GT(serialProducts, 20u);
+  for (const unsigned int units : { 1u, 2u, 3u, 7u })
+  {
+    SCOPED_TRACE(units);
+    auto threader = itk::MultiThreaderBase::New();
+    threader->SetMaximumNumberOfThreads(std::max(units, 2u));
+    threader->SetNumberOfWorkUnits(units);
+    std::vector<double> u(f.size());
+    size_t              products = 0;
+    ASSERT_TRUE(cg.Solve(f.data(), u.data(), 1e-10, 5000, products, threader));
+    EXPECT_EQ(products, serialProducts);
+    EXPECT_EQ(u, serial);
+  }
+  // through the solver, with the registration's threader
+  auto solver = itk::LinearElasticFEMSolver<3>::New();
+  solver->SetLambda(lambda);
+  solver->SetMu(mu);
+  solver->SetTolerance(1e-10);
+  solver->SetDirectSolverMaximumDegreesOfFreedom(0);
+  solver->SetGPUOrderSolve(true);
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetNumberOfWorkUnits(3);
+  solver->SetMultiThreader(threader);
+  EXPECT_EQ(solver->GetMultiThreader(), threader.GetPointer());
+  solver->SetMesh(mesh);
+  std::vector<double> u;
+  solver->Solve(f, u);
+  for (size_t i = 0; i < u.size(); ++i)
+  {
+    ASSERT_EQ(u[i], mesh.fixed[i / 3] ? 0.0 : serial[i]) << i;
+  }
+}
+
 TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
 {
   auto solver = itk::LinearElasticFEMSolver<2>::New();
@@ -435,7 +520,8 @@ TEST(LinearElasticFEMSolver, ObjectMethodsSetGetAndBadUse)
                                               "NumberOfFreeNodes",
                                               "NumberOfDegreesOfFreedom",
                                               "DirectSolverMaximumDegreesOfFreedom",
-                                              "GPUOrderSolve" }));
+                                              "GPUOrderSolve",
+                                              "MultiThreader" }));
   DMR_EXPECT_SET_GET(solver, Lambda, 4.5);
   DMR_EXPECT_SET_GET(solver, Mu, 0.25);
   EXPECT_EQ(solver->GetDirectSolverMaximumDegreesOfFreedom(), 300u); // the default

@@ -799,14 +799,9 @@ public:
     // the sub-sweeps' threads (SweepChunks) live for this call only
     struct TeamRelease
     {
-      std::unique_ptr<WorkerTeam> & team;
-      bool &                        unavailable;
-      ~TeamRelease()
-      {
-        team.reset();
-        unavailable = false;
-      }
-    } teamRelease{ m_Team, m_TeamUnavailable };
+      TeamRunner & runner;
+      ~TeamRelease() { runner.Release(); }
+    } teamRelease{ m_Runner };
 
     for (size_t sweep = 0; sweep < maximumNumberOfSweeps; ++sweep)
     {
@@ -1127,44 +1122,16 @@ private:
     }
   }
 
-  /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call: a sub-sweep lasts tens
-   * of microseconds in 2D, about what a loop through ITK's pool costs to start. The team is made at the first sub-sweep
-   * with more than one chunk, with as many threads as it has chunks (at most the threader's), and made larger when a
-   * later one has more (2D lists take two chunks: a many-core machine keeps two threads busy, not all). Its threads
-   * come on top of ITK's pool: where the process may not start them (a limit on threads or on virtual memory), the
-   * rest of the call runs its sub-sweeps on ITK's threader instead, with the same result. Chunk outputs are combined
-   * in chunk order by the callers, as with ParallelForChunkIds. */
+  /** body(c) for every chunk c of a sub-sweep, in parallel on the team of this Optimize call (TeamRunner): a sub-sweep
+   * lasts tens of microseconds in 2D, about what a loop through ITK's pool costs to start. The team is made at the
+   * first sub-sweep with more than one chunk (2D lists take two chunks: a many-core machine keeps two threads busy, not
+   * all); where its threads may not start, the sub-sweeps run on ITK's threader with the same result. Chunk outputs are
+   * combined in chunk order by the callers, as with ParallelForChunkIds. */
   template <typename TBody>
   void
   SweepChunks(size_t nChunks, TBody && body)
   {
-    const auto threads = static_cast<unsigned int>(std::min<size_t>(WorkerTeam::ThreadsOf(m_Threader), nChunks));
-    if (threads <= 1)
-    {
-      for (size_t c = 0; c < nChunks; ++c)
-      {
-        body(c);
-      }
-      return;
-    }
-    if (!m_TeamUnavailable && (!m_Team || m_Team->GetNumberOfThreads() < threads))
-    {
-      m_Team.reset(); // its threads end before the larger team's start
-      try
-      {
-        m_Team = std::make_unique<WorkerTeam>(threads);
-      }
-      catch (const std::system_error &)
-      {
-        m_TeamUnavailable = true;
-      }
-    }
-    if (m_TeamUnavailable)
-    {
-      ParallelForChunkIds(m_Threader, nChunks, body);
-      return;
-    }
-    m_Team->Run(nChunks, body);
+    m_Runner.Run(m_Threader, nChunks, body);
   }
 
   /** Active lists from scratch: every boundary pixel in its colour's scan list and its cell's gather list, every
@@ -1669,8 +1636,7 @@ private:
   GridType                           m_Grid;
   const float *                      m_Density{ nullptr };
   MultiThreaderBase *                m_Threader{ nullptr };
-  std::unique_ptr<WorkerTeam>        m_Team;                     // during Optimize only
-  bool                               m_TeamUnavailable{ false }; // its threads could not start (this Optimize call)
+  TeamRunner                         m_Runner; // the sub-sweeps' threads, during Optimize only
   std::vector<LabelType>             m_Labels;
   std::vector<double>                m_Mass;
   std::vector<double>                m_Centroid;

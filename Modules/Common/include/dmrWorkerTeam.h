@@ -26,7 +26,9 @@
 #include <cstddef>
 #include <cstdint>
 #include <exception>
+#include <memory>
 #include <mutex>
+#include <system_error>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -286,6 +288,72 @@ private:
   void (*m_Invoke)(void *, size_t){ nullptr };
   std::mutex         m_ErrorMutex;
   std::exception_ptr m_Error;
+};
+
+/** The parallel loops of one call (a CVT Optimize, a conjugate-gradient solve) on a WorkerTeam made at the first loop
+ * with more than one chunk, with as many threads as that loop has chunks (at most the threader's,
+ * WorkerTeam::ThreadsOf) and made larger when a later loop has more. Its threads come on top of ITK's pool: where the
+ * process may not start them (a limit on threads or on virtual memory), this and the later loops until Release() run on
+ * the threader instead, with the same chunks. Release() (or the destructor) ends the team's threads. Callers that need
+ * deterministic results combine per-chunk outputs in chunk order, as with WorkerTeam::Run. */
+class TeamRunner
+{
+public:
+  TeamRunner() = default;
+  TeamRunner(const TeamRunner &) = delete;
+  TeamRunner &
+  operator=(const TeamRunner &) = delete;
+  TeamRunner(TeamRunner &&) = default;
+  TeamRunner &
+  operator=(TeamRunner &&) = default;
+
+  /** body(c) for every chunk c in [0, numberOfChunks), in parallel on the team (or the threader), serially without a
+   * threader or with one thread. */
+  template <typename TBody>
+  void
+  Run(MultiThreaderBase * threader, size_t numberOfChunks, TBody && body)
+  {
+    const auto threads = static_cast<unsigned int>(std::min<size_t>(WorkerTeam::ThreadsOf(threader), numberOfChunks));
+    if (threads <= 1)
+    {
+      for (size_t c = 0; c < numberOfChunks; ++c)
+      {
+        body(c);
+      }
+      return;
+    }
+    if (!m_Unavailable && (!m_Team || m_Team->GetNumberOfThreads() < threads))
+    {
+      m_Team.reset(); // its threads end before the larger team's start
+      try
+      {
+        m_Team = std::make_unique<WorkerTeam>(threads);
+      }
+      catch (const std::system_error &)
+      {
+        m_Unavailable = true;
+      }
+    }
+    if (m_Unavailable)
+    {
+      threader->ParallelizeArray(
+        0, numberOfChunks, [&](SizeValueType c) { body(static_cast<size_t>(c)); }, nullptr);
+      return;
+    }
+    m_Team->Run(numberOfChunks, body);
+  }
+
+  /** Ends the team's threads; the next loop may try to start a team again. */
+  void
+  Release()
+  {
+    m_Team.reset();
+    m_Unavailable = false;
+  }
+
+private:
+  std::unique_ptr<WorkerTeam> m_Team;
+  bool                        m_Unavailable{ false }; // its threads could not start (until Release)
 };
 } // namespace dmr
 } // namespace itk

@@ -20,7 +20,9 @@
 
 #include "dmrElasticOperator.h"
 #include "dmrSimplexMesh.h"
+#include "dmrWorkerTeam.h"
 #include "itkMacro.h"
+#include "itkMultiThreaderBase.h"
 
 #include <algorithm>
 #include <cmath>
@@ -112,9 +114,16 @@ public:
   }
 
   /** Solves K u = f (u = 0 on fixed nodes) from u = 0 with at most maximumProducts products of K; iterations is the
-   * number of products taken. Returns whether |r|^2 fell below tolerance^2 |f|^2. */
+   * number of products taken. Returns whether |r|^2 fell below tolerance^2 |f|^2. With a threader, the element, node
+   * and unknown loops of every product run on a team of its threads (TeamRunner, for this call only); every value is
+   * still computed by one thread in the fixed order above, so the result does not depend on the threads. */
   bool
-  Solve(const double * f, double * u, double tolerance, size_t maximumProducts, size_t & iterations) const
+  Solve(const double *      f,
+        double *            u,
+        double              tolerance,
+        size_t              maximumProducts,
+        size_t &            iterations,
+        MultiThreaderBase * threader = nullptr) const
   {
     if (!m_Mesh)
     {
@@ -125,13 +134,27 @@ public:
     const size_t        nodeBlocks = (nn * Warp + BlockThreads - 1) / BlockThreads;
     std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), stress(m_Mesh->elements.size() * D * D);
     std::vector<double> rrPartials(dofBlocks), rzPartials(dofBlocks), pqPartials(nodeBlocks);
+    TeamRunner          runner;
+    // body(begin, end) over [0, n) in contiguous ranges of at least `grain`, at most four per thread
+    const size_t threads = WorkerTeam::ThreadsOf(threader);
+    auto         forRanges = [&](size_t n, size_t grain, auto && body) {
+      const size_t chunks = std::max<size_t>(1, std::min((n + grain - 1) / grain, 4 * threads));
+      const size_t size = (n + chunks - 1) / chunks;
+      runner.Run(threader, chunks, [&](size_t c) {
+        const size_t begin = c * size, end = std::min(n, begin + size);
+        if (begin < end)
+        {
+          body(begin, end);
+        }
+      });
+    };
     std::fill(u, u + ndof, 0.0);
     // CGStartKernel, then the host's sums of its partials
     for (size_t i = 0; i < ndof; ++i)
     {
       r[i] = Fixed(i / D) ? 0.0 : f[i];
     }
-    StoreResiduals(r, z, rrPartials, rzPartials);
+    forRanges(dofBlocks, 4, [&](size_t b0, size_t b1) { StoreResiduals(b0, b1, r, z, rrPartials, rzPartials); });
     p = z;
     double rhsNorm2 = 0.0, rz = 0.0;
     for (size_t b = 0; b < dofBlocks; ++b)
@@ -146,17 +169,28 @@ public:
     }
     const double threshold = std::max(tolerance * tolerance * rhsNorm2, std::numeric_limits<double>::min());
     double       scalars[2] = { rz, 0.0 }; // r.z by iteration parity
+    const auto & elements = m_Mesh->elements;
     for (size_t k = 0; k < maximumProducts; ++k)
     {
       const int parity = static_cast<int>(k & 1);
-      Apply(p, stress, q, pqPartials);
+      // q = K p: the element stresses (ElementStresses), then the nodes' sums (NodeApplyBlock)
+      forRanges(elements.size(), 1024, [&](size_t e0, size_t e1) {
+        for (size_t e = e0; e < e1; ++e)
+        {
+          ElasticElementStress<D>(
+            &m_Geometry[e * Stride], elements[e].data(), p.data(), m_Lambda, m_Mu, &stress[e * D * D]);
+        }
+      });
+      forRanges(nodeBlocks, 16, [&](size_t b0, size_t b1) { ApplyNodeBlocks(b0, b1, p, stress, q, pqPartials); });
       const double alpha = scalars[parity] / SumPartials(pqPartials);
-      for (size_t i = 0; i < ndof; ++i)
-      {
-        u[i] += alpha * p[i];
-        r[i] = r[i] - alpha * q[i];
-      }
-      StoreResiduals(r, z, rrPartials, rzPartials);
+      forRanges(dofBlocks, 4, [&](size_t b0, size_t b1) {
+        for (size_t i = b0 * BlockThreads; i < std::min(ndof, b1 * BlockThreads); ++i)
+        {
+          u[i] += alpha * p[i];
+          r[i] = r[i] - alpha * q[i];
+        }
+        StoreResiduals(b0, b1, r, z, rrPartials, rzPartials);
+      });
       const double rr = SumPartials(rrPartials);
       const double rzNew = SumPartials(rzPartials);
       ++iterations;
@@ -183,28 +217,39 @@ private:
     return !m_Mesh->fixed.empty() && m_Mesh->fixed[node];
   }
 
-  /** The shuffle-down tree of one warp (v_l += v_{l+o} for o = 16, 8, 4, 2, 1): lane 0's result. */
+  /** The shuffle-down tree of one warp (v_l += v_{l+o} for o = 16, 8, 4, 2, 1): lane 0's result, where only the first
+   * `lanes` values are given and the others are +0. The additions with a +0 lane are left out: none of the values is
+   * -0 (each starts at +0 and only gains terms, and x + (-x) is +0), so adding +0 leaves it as it is, and the result is
+   * that of the whole tree, bit for bit. */
   static double
-  WarpSum(double * v)
+  WarpSum(double * v, int lanes)
   {
+    if (lanes <= 0)
+    {
+      return 0.0;
+    }
     for (int o = Warp / 2; o > 0; o >>= 1)
     {
-      for (int l = 0; l < o; ++l)
+      for (int l = 0; l < std::min(o, lanes - o); ++l)
       {
         v[l] = v[l] + v[l + o];
       }
+      lanes = std::min(lanes, o);
     }
     return v[0];
   }
 
-  /** BlockCombine's sum of BlockThreads values (missing ones 0): each warp's tree, then the warps in order. */
+  /** BlockCombine's sum of BlockThreads values of which the first `count` are given (the others 0): each warp's tree,
+   * then the warps in order. */
   static double
-  BlockSum(double * v)
+  BlockSum(double * v, size_t count)
   {
     double s = 0.0;
     for (int w = 0; w < BlockThreads / Warp; ++w)
     {
-      s = s + WarpSum(v + w * Warp);
+      const auto lanes =
+        static_cast<int>(std::min<size_t>(Warp, count > static_cast<size_t>(w * Warp) ? count - w * Warp : 0));
+      s = s + WarpSum(v + w * Warp, lanes);
     }
     return s;
   }
@@ -213,77 +258,79 @@ private:
   static double
   SumPartials(const std::vector<double> & partials)
   {
-    double v[BlockThreads];
-    for (int t = 0; t < BlockThreads; ++t)
+    double       v[BlockThreads];
+    const size_t count = std::min<size_t>(BlockThreads, partials.size());
+    for (size_t t = 0; t < count; ++t)
     {
       v[t] = 0.0;
-      for (size_t i = static_cast<size_t>(t); i < partials.size(); i += BlockThreads)
+      for (size_t i = t; i < partials.size(); i += BlockThreads)
       {
         v[t] += partials[i];
       }
     }
-    return BlockSum(v);
+    return BlockSum(v, count);
   }
 
-  /** StoreResidual for every degree of freedom: z = M^-1 r and the per-block partial sums of r.r and r.z. */
+  /** StoreResidual for the degrees of freedom of blocks [b0, b1): z = M^-1 r and each block's partial sums of r.r and
+   * r.z. */
   void
-  StoreResiduals(const std::vector<double> & r,
+  StoreResiduals(size_t                      b0,
+                 size_t                      b1,
+                 const std::vector<double> & r,
                  std::vector<double> &       z,
                  std::vector<double> &       rrPartials,
                  std::vector<double> &       rzPartials) const
   {
     const size_t ndof = r.size();
     double       rr[BlockThreads], rz[BlockThreads];
-    for (size_t b = 0; b < rrPartials.size(); ++b)
+    for (size_t b = b0; b < b1; ++b)
     {
-      for (int t = 0; t < BlockThreads; ++t)
+      const size_t count = std::min<size_t>(BlockThreads, ndof - b * BlockThreads);
+      for (size_t t = 0; t < count; ++t)
       {
-        const size_t i = b * BlockThreads + static_cast<size_t>(t);
-        rr[t] = rz[t] = 0.0;
-        if (i < ndof)
-        {
-          z[i] = m_InverseDiagonal[i] * r[i];
-          rr[t] = r[i] * r[i];
-          rz[t] = r[i] * z[i];
-        }
+        const size_t i = b * BlockThreads + t;
+        z[i] = m_InverseDiagonal[i] * r[i];
+        rr[t] = r[i] * r[i];
+        rz[t] = r[i] * z[i];
       }
-      rrPartials[b] = BlockSum(rr);
-      rzPartials[b] = BlockSum(rz);
+      rrPartials[b] = BlockSum(rr, count);
+      rzPartials[b] = BlockSum(rz, count);
     }
   }
 
-  /** q = K p (0 on fixed nodes) and the per-node-block partial sums of p . q (ElementStresses, NodeApplyBlock). */
+  /** q = K p (0 on fixed nodes) at the nodes of node blocks [b0, b1) from the element stresses, and each block's
+   * partial sum of p . q (NodeApplyBlock: one warp per node, lane l summing the node's incident elements l, l + 32, ...
+   * in element order, then the warp's tree). */
   void
-  Apply(const std::vector<double> & p,
-        std::vector<double> &       stress,
-        std::vector<double> &       q,
-        std::vector<double> &       pqPartials) const
+  ApplyNodeBlocks(size_t                      b0,
+                  size_t                      b1,
+                  const std::vector<double> & p,
+                  const std::vector<double> & stress,
+                  std::vector<double> &       q,
+                  std::vector<double> &       pqPartials) const
   {
     constexpr unsigned int NV = D + 1;
-    const auto &           elements = m_Mesh->elements;
-    for (size_t e = 0; e < elements.size(); ++e)
+    const size_t           nn = m_Mesh->NumberOfNodes();
+    constexpr int          NodesPerBlock = BlockThreads / Warp;
+    double                 pq[BlockThreads];
+    for (size_t block = b0; block < b1; ++block)
     {
-      ElasticElementStress<D>(
-        &m_Geometry[e * Stride], elements[e].data(), p.data(), m_Lambda, m_Mu, &stress[e * D * D]);
-    }
-    const size_t  nn = m_Mesh->NumberOfNodes();
-    constexpr int NodesPerBlock = BlockThreads / Warp;
-    double        pq[BlockThreads];
-    for (size_t block = 0; block < pqPartials.size(); ++block)
-    {
-      std::fill(pq, pq + BlockThreads, 0.0);
       for (int w = 0; w < NodesPerBlock; ++w)
       {
         const size_t a = block * NodesPerBlock + static_cast<size_t>(w);
+        pq[w * Warp] = 0.0;
         if (a >= nn)
         {
           continue;
         }
-        double y[Warp][D] = {};
+        double y[Warp][D];
+        int    lanes = 0;
         if (!Fixed(a))
         {
-          for (int lane = 0; lane < Warp; ++lane)
+          lanes = static_cast<int>(std::min<int64_t>(Warp, m_Start[a + 1] - m_Start[a]));
+          for (int lane = 0; lane < lanes; ++lane)
           {
+            std::fill(y[lane], y[lane] + D, 0.0);
             for (int64_t i = m_Start[a] + lane; i < m_Start[a + 1]; i += Warp)
             {
               const size_t e = static_cast<size_t>(m_Incidence[i] / NV),
@@ -296,17 +343,23 @@ private:
         for (unsigned int k = 0; k < D; ++k)
         {
           double v[Warp];
-          for (int lane = 0; lane < Warp; ++lane)
+          for (int lane = 0; lane < lanes; ++lane)
           {
             v[lane] = y[lane][k];
           }
-          const double yk = WarpSum(v);
+          const double yk = WarpSum(v, lanes);
           q[a * D + k] = yk;
           sum += p[a * D + k] * yk;
         }
         pq[w * Warp] = sum;
       }
-      pqPartials[block] = BlockSum(pq);
+      // lane 0 of each warp holds its node's p . q, the other lanes 0
+      double s = 0.0;
+      for (int w = 0; w < NodesPerBlock; ++w)
+      {
+        s = s + WarpSum(pq + w * Warp, 1);
+      }
+      pqPartials[block] = s;
     }
   }
 

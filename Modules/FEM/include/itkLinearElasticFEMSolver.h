@@ -44,7 +44,8 @@ namespace itk
  * system size is unchanged, falling back to the factorisation if CG does not converge. For the 3D meshes of the paper
  * (3000 nodes) CG is about 20x faster than factorising every new mesh, and the dynamic mesh changes every iteration.
  * With GPUOrderSolve on, the CG is instead dmr::ElasticCG: matrix-free, from u = 0, with the CUDA back-end's
- * arithmetic in its order, so that a CPU run takes the GPU's iterates bit for bit (2-4x slower on the CPU).
+ * arithmetic in its order, so that a CPU run takes the GPU's iterates bit for bit; its loops run on MultiThreader's
+ * threads.
  * A small system costs about the same either way, and the exact solve makes the result a continuous function of the
  * force: a CG stopped at a tolerance jumps by about that tolerance when a rounding difference in its input moves its
  * stopping iteration, and over many iterations of a large deformation such jumps grow into different registrations
@@ -114,6 +115,10 @@ public:
   itkSetMacro(GPUOrderSolve, bool);
   itkGetConstMacro(GPUOrderSolve, bool);
   itkBooleanMacro(GPUOrderSolve);
+  /** The threader whose threads the GPU-order CG (GPUOrderSolve) runs its element and node loops on (none: one
+   * thread); the result does not depend on it. */
+  itkSetObjectMacro(MultiThreader, MultiThreaderBase);
+  itkGetModifiableObjectMacro(MultiThreader, MultiThreaderBase);
   /** CG iterations of the last Solve(): 0 for a direct solve (the fallback factorisation ran when it equals the
    * limit). */
   itkGetConstMacro(LastIterations, SizeValueType);
@@ -140,6 +145,7 @@ private:
   bool                                                             m_GPUOrderSolve{ false };
   bool                                                             m_GPUOrderSystem{ false }; // set by SetMesh
   dmr::ElasticCG<VDimension>                                       m_ElasticCG;
+  MultiThreaderBase::Pointer                                       m_MultiThreader;
   SparseMatrixType                                                 m_Kf; // reduced to the free degrees of freedom
   std::unique_ptr<ConjugateGradientType>                           m_CG;
   mutable std::unique_ptr<Eigen::SimplicialLDLT<SparseMatrixType>> m_Factor;

@@ -279,8 +279,12 @@ LinearElasticFEMSolver<D>::Solve(const VectorType & f, VectorType & u) const
       // matrix-free CG from u = 0 in the CUDA back-end's order, with the device's product limit
       std::vector<double> full(nDof);
       size_t              products = 0;
-      converged = m_ElasticCG.Solve(
-        f.data(), full.data(), m_Tolerance, std::max<size_t>(1000, 4 * static_cast<size_t>(rhs.size())), products);
+      converged = m_ElasticCG.Solve(f.data(),
+                                    full.data(),
+                                    m_Tolerance,
+                                    std::max<size_t>(1000, 4 * static_cast<size_t>(rhs.size())),
+                                    products,
+                                    m_MultiThreader.GetPointer());
       m_LastIterations = static_cast<SizeValueType>(products);
       x.resize(rhs.size());
       for (size_t i = 0; i < nDof; ++i)
@@ -353,6 +357,7 @@ LinearElasticFEMSolver<D>::PrintSelf(std::ostream & os, Indent indent) const
   os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
   os << indent << "Direct: " << (m_Direct ? "true" : "false") << std::endl;
   os << indent << "GPUOrderSolve: " << (m_GPUOrderSolve ? "true" : "false") << std::endl;
+  os << indent << "MultiThreader: " << m_MultiThreader.GetPointer() << std::endl;
   os << indent << "LastIterations: " << m_LastIterations << std::endl;
 }
 } // namespace itk

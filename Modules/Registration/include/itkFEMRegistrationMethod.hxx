@@ -562,6 +562,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetTolerance(m_SolverTolerance);
   m_Solver->SetDirectSolverMaximumDegreesOfFreedom(m_DirectSolverMaximumDegreesOfFreedom);
   m_Solver->SetGPUOrderSolve(m_GPUOrderSolve);
+  m_Solver->SetMultiThreader(this->GetMultiThreader());
   m_Labels = nullptr;
   m_InverseDisplacementField = nullptr;
 
