@@ -426,14 +426,12 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveSolvesTheSystem)
   EXPECT_EQ(u, zero);
 }
 
-/** The GPU-order CG's loops on a threader give the result of one thread, bit for bit, on a mesh whose nodes have from
- * a few to more than 32 incident elements (a node's sum then takes more than one element per lane): the Delaunay
- * tetrahedralization of random nodes in a box, border nodes fixed. */
-TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
+/** The Delaunay tetrahedralization of random nodes in a box, some of them on its faces, border nodes fixed: nodes with
+ * from a few to more than 32 incident elements. */
+itk::dmr::SimplexMesh<3>
+RandomBoxMesh(const itk::dmr::Grid<3> & grid, std::mt19937 & rng)
 {
-  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
-  std::mt19937            rng(20261124);
-  std::vector<double>     xyz;
+  std::vector<double> xyz;
   for (unsigned int q = 0; q < 8; ++q)
   {
     for (unsigned int k = 0; k < 3; ++k)
@@ -458,7 +456,110 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
   mesh.elements = tetrahedra;
   mesh.OrientPositively();
   mesh.MarkBorderNodes(grid);
-  std::vector<int> incident(mesh.NumberOfNodes(), 0);
+  return mesh;
+}
+
+/** K p as the CUDA back-end's NodeApplyBlock defines it, written out from the shared per-element and per-node functions
+ * of dmrElasticOperator.h: the stress of every element, then per node one warp of 32 lanes, lane l summing the node's
+ * incident elements l, l + 32, ... in element order, and the whole shuffle-down tree over the 32 lanes (unused lanes
+ * +0); fixed nodes 0. */
+std::vector<double>
+WarpOrderProduct(const itk::dmr::SimplexMesh<3> & mesh, const std::vector<double> & p)
+{
+  constexpr unsigned int           D = 3, NV = 4, Stride = itk::dmr::ElasticGeometryStride<D>();
+  const size_t                     ne = mesh.elements.size(), nn = mesh.NumberOfNodes();
+  std::vector<double>              geometry(ne * Stride), stress(ne * D * D);
+  std::vector<std::vector<size_t>> incidences(nn);
+  for (size_t e = 0; e < ne; ++e)
+  {
+    double x0[D], inv[D][D];
+    mesh.EdgeMatrix(e, x0, &inv);
+    itk::dmr::ElasticElementGeometry<D>(&inv[0][0], mesh.nodes.data(), mesh.elements[e].data(), &geometry[e * Stride]);
+    itk::dmr::ElasticElementStress<D>(
+      &geometry[e * Stride], mesh.elements[e].data(), p.data(), lambda, mu, &stress[e * D * D]);
+    for (unsigned int v = 0; v < NV; ++v)
+    {
+      incidences[mesh.elements[e][v]].push_back(e * NV + v);
+    }
+  }
+  std::vector<double> q(nn * D, 0.0);
+  for (size_t a = 0; a < nn; ++a)
+  {
+    if (mesh.fixed[a])
+    {
+      continue;
+    }
+    double y[32][D] = {};
+    for (size_t i = 0; i < incidences[a].size(); ++i)
+    {
+      const size_t e = incidences[a][i] / NV, slot = incidences[a][i] % NV;
+      itk::dmr::AddElasticNodeTerm<D>(&stress[e * D * D], &geometry[e * Stride + slot * D], y[i % 32]);
+    }
+    for (int o = 16; o > 0; o >>= 1)
+    {
+      for (int l = 0; l < o; ++l)
+      {
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          y[l][k] = y[l][k] + y[l + o][k];
+        }
+      }
+    }
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      q[a * D + k] = y[0][k];
+    }
+  }
+  return q;
+}
+
+/** The GPU-order CG's product (its elements in vector-friendly blocks, its node terms precomputed) is the product of
+ * the CUDA back-end's definition, bit for bit, on one thread and on several. */
+TEST(LinearElasticFEMSolver, GPUOrderProductIsTheWarpOrderProduct)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
+  std::mt19937            rng(20261124);
+  const auto              mesh = RandomBoxMesh(grid, rng);
+  std::vector<size_t>     incident(mesh.NumberOfNodes(), 0);
+  for (const auto & t : mesh.elements)
+  {
+    for (const int32_t v : t)
+    {
+      ++incident[v];
+    }
+  }
+  ASSERT_GT(*std::max_element(incident.begin(), incident.end()), 32u);
+  ASSERT_NE(mesh.elements.size() % 4, 0u); // a part-filled last block of elements
+  itk::dmr::ElasticCG<3> cg;
+  cg.SetSystem(mesh, lambda, mu);
+  for (int trial = 0; trial < 3; ++trial)
+  {
+    std::vector<double> p(mesh.NumberOfNodes() * 3);
+    for (double & v : p)
+    {
+      v = std::uniform_real_distribution<double>(-1.0, 1.0)(rng);
+    }
+    const auto          expected = WarpOrderProduct(mesh, p);
+    std::vector<double> q(p.size(), 7.0);
+    cg.Apply(p.data(), q.data());
+    EXPECT_EQ(q, expected);
+    auto threader = itk::MultiThreaderBase::New();
+    threader->SetMaximumNumberOfThreads(3);
+    threader->SetNumberOfWorkUnits(3);
+    std::fill(q.begin(), q.end(), 7.0);
+    cg.Apply(p.data(), q.data(), threader);
+    EXPECT_EQ(q, expected);
+  }
+}
+
+/** The GPU-order CG's loops on a threader give the result of one thread, bit for bit, on a mesh whose nodes have from
+ * a few to more than 32 incident elements (a node's sum then takes more than one element per lane). */
+TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
+{
+  const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
+  std::mt19937            rng(20261124);
+  const auto              mesh = RandomBoxMesh(grid, rng);
+  std::vector<int>        incident(mesh.NumberOfNodes(), 0);
   for (const auto & t : mesh.elements)
   {
     for (const int32_t v : t)

@@ -46,7 +46,10 @@ namespace dmr
  * element matrix of LinearElasticFEMSolver applied to p. A node's incident elements are summed as one warp of 32 lanes
  * does it (lane l takes incidences l, l + 32, ... in element order, then a shuffle-down tree); a dot product is summed
  * per block of 256 values (a tree within each warp of 32, then the 8 warps in order), and the block partials by 256
- * strided sequential sums and one more block sum. Fixed nodes keep u = 0. Stops when |r|^2 < tolerance^2 |f|^2 (f
+ * strided sequential sums and one more block sum. On the CPU the element arithmetic runs on blocks of 4 elements with
+ * the lanes innermost (the same operations for each element, which the compiler vectorises) and leaves each incidence's
+ * node term for the nodes' sums; the test GPUOrderProductIsTheWarpOrderProduct compares this product with the literal
+ * warp-order one, bit for bit. Fixed nodes keep u = 0. Stops when |r|^2 < tolerance^2 |f|^2 (f
  * zeroed on fixed nodes), Eigen's rule. Needs IEEE double arithmetic without contraction into fused multiply-adds
  * (ISO C++ mode, as the project compiles; the CUDA code is compiled with --fmad=false). */
 template <unsigned int D>
@@ -73,6 +76,23 @@ public:
       mesh.EdgeMatrix(e, x0, &inv); // the inverse edge matrix the GPU reads from BarycentricMap::ElementAffine
       ElasticElementGeometry<D>(&inv[0][0], mesh.nodes.data(), mesh.elements[e].data(), &m_Geometry[e * Stride]);
     }
+    // the same gradients and volumes in blocks of Lanes elements, lane innermost, for ElementBlocks' loops (padding
+    // lanes: zero geometry, vertex 0)
+    const size_t blocks = (ne + Lanes - 1) / Lanes;
+    m_BlockGeometry.assign(blocks * Stride * Lanes, 0.0);
+    m_BlockVertices.assign(blocks * NV * Lanes, 0);
+    for (size_t e = 0; e < ne; ++e)
+    {
+      const size_t block = e / Lanes, lane = e % Lanes;
+      for (unsigned int c = 0; c < Stride; ++c)
+      {
+        m_BlockGeometry[(block * Stride + c) * Lanes + lane] = m_Geometry[e * Stride + c];
+      }
+      for (unsigned int v = 0; v < NV; ++v)
+      {
+        m_BlockVertices[(block * NV + v) * Lanes + lane] = mesh.elements[e][v];
+      }
+    }
     m_Start.assign(nn + 1, 0);
     for (size_t e = 0; e < ne; ++e)
     {
@@ -93,6 +113,12 @@ public:
       {
         m_Incidence[fill[mesh.elements[e][v]]++] = static_cast<int64_t>(e * NV + v);
       }
+    }
+    m_TermOffset.resize(m_Incidence.size());
+    for (size_t i = 0; i < m_Incidence.size(); ++i)
+    {
+      const size_t e = static_cast<size_t>(m_Incidence[i] / NV), slot = static_cast<size_t>(m_Incidence[i] % NV);
+      m_TermOffset[i] = ((e / Lanes * NV + slot) * D) * Lanes + e % Lanes;
     }
     m_InverseDiagonal.assign(nn * D, 0.0);
     for (size_t a = 0; a < nn; ++a)
@@ -132,22 +158,11 @@ public:
     const size_t        nn = m_Mesh->NumberOfNodes(), ndof = nn * D;
     const size_t        dofBlocks = (ndof + BlockThreads - 1) / BlockThreads;
     const size_t        nodeBlocks = (nn * Warp + BlockThreads - 1) / BlockThreads;
-    std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), stress(m_Mesh->elements.size() * D * D);
+    const size_t        elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
+    std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), terms(elementBlocks * Lanes * (D + 1) * D);
     std::vector<double> rrPartials(dofBlocks), rzPartials(dofBlocks), pqPartials(nodeBlocks);
     TeamRunner          runner;
-    // body(begin, end) over [0, n) in contiguous ranges of at least `grain`, at most four per thread
-    const size_t threads = WorkerTeam::ThreadsOf(threader);
-    auto         forRanges = [&](size_t n, size_t grain, auto && body) {
-      const size_t chunks = std::max<size_t>(1, std::min((n + grain - 1) / grain, 4 * threads));
-      const size_t size = (n + chunks - 1) / chunks;
-      runner.Run(threader, chunks, [&](size_t c) {
-        const size_t begin = c * size, end = std::min(n, begin + size);
-        if (begin < end)
-        {
-          body(begin, end);
-        }
-      });
-    };
+    auto forRanges = [&](size_t n, size_t grain, auto && body) { ForRanges(runner, threader, n, grain, body); };
     std::fill(u, u + ndof, 0.0);
     // CGStartKernel, then the host's sums of its partials
     for (size_t i = 0; i < ndof; ++i)
@@ -169,19 +184,10 @@ public:
     }
     const double threshold = std::max(tolerance * tolerance * rhsNorm2, std::numeric_limits<double>::min());
     double       scalars[2] = { rz, 0.0 }; // r.z by iteration parity
-    const auto & elements = m_Mesh->elements;
     for (size_t k = 0; k < maximumProducts; ++k)
     {
       const int parity = static_cast<int>(k & 1);
-      // q = K p: the element stresses (ElementStresses), then the nodes' sums (NodeApplyBlock)
-      forRanges(elements.size(), 1024, [&](size_t e0, size_t e1) {
-        for (size_t e = e0; e < e1; ++e)
-        {
-          ElasticElementStress<D>(
-            &m_Geometry[e * Stride], elements[e].data(), p.data(), m_Lambda, m_Mu, &stress[e * D * D]);
-        }
-      });
-      forRanges(nodeBlocks, 16, [&](size_t b0, size_t b1) { ApplyNodeBlocks(b0, b1, p, stress, q, pqPartials); });
+      Product(runner, threader, p, terms, q, pqPartials);
       const double alpha = scalars[parity] / SumPartials(pqPartials);
       forRanges(dofBlocks, 4, [&](size_t b0, size_t b1) {
         for (size_t i = b0 * BlockThreads; i < std::min(ndof, b1 * BlockThreads); ++i)
@@ -208,13 +214,67 @@ public:
     return false;
   }
 
+  /** q = K p (0 on fixed nodes), the product Solve takes, computed the same way (ndof = D x nodes values each). */
+  void
+  Apply(const double * p, double * q, MultiThreaderBase * threader = nullptr) const
+  {
+    if (!m_Mesh)
+    {
+      itkGenericExceptionMacro("ElasticCG: Apply() needs SetSystem() first");
+    }
+    const size_t        nn = m_Mesh->NumberOfNodes(), ndof = nn * D;
+    const size_t        elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
+    std::vector<double> pv(p, p + ndof), qv(ndof), terms(elementBlocks * Lanes * (D + 1) * D),
+      pqPartials((nn * Warp + BlockThreads - 1) / BlockThreads);
+    TeamRunner runner;
+    Product(runner, threader, pv, terms, qv, pqPartials);
+    std::copy(qv.begin(), qv.end(), q);
+  }
+
 private:
-  static constexpr size_t Stride = ElasticGeometryStride<D>(); // D + 1 gradients, then the volume
+  static constexpr size_t       Stride = ElasticGeometryStride<D>(); // D + 1 gradients, then the volume
+  static constexpr unsigned int Lanes = 4;                           // elements per step of ElementBlocks
 
   bool
   Fixed(size_t node) const
   {
     return !m_Mesh->fixed.empty() && m_Mesh->fixed[node];
+  }
+
+  /** body(begin, end) over [0, n) in contiguous ranges of at least `grain`, at most four per thread of the threader,
+   * on the runner's team. */
+  template <typename TBody>
+  static void
+  ForRanges(TeamRunner & runner, MultiThreaderBase * threader, size_t n, size_t grain, TBody && body)
+  {
+    const size_t chunks =
+      std::max<size_t>(1, std::min<size_t>((n + grain - 1) / grain, 4 * WorkerTeam::ThreadsOf(threader)));
+    const size_t size = (n + chunks - 1) / chunks;
+    runner.Run(threader, chunks, [&](size_t c) {
+      const size_t begin = c * size, end = std::min(n, begin + size);
+      if (begin < end)
+      {
+        body(begin, end);
+      }
+    });
+  }
+
+  /** q = K p and the node blocks' partial sums of p . q: the element stresses (ElementStresses) with their node terms,
+   * then the nodes' sums (NodeApplyBlock). */
+  void
+  Product(TeamRunner &                runner,
+          MultiThreaderBase *         threader,
+          const std::vector<double> & p,
+          std::vector<double> &       terms,
+          std::vector<double> &       q,
+          std::vector<double> &       pqPartials) const
+  {
+    const size_t elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
+    const size_t nodeBlocks = pqPartials.size();
+    ForRanges(runner, threader, elementBlocks, 256, [&](size_t b0, size_t b1) { ElementBlocks(b0, b1, p, terms); });
+    ForRanges(runner, threader, nodeBlocks, 16, [&](size_t b0, size_t b1) {
+      ApplyNodeBlocks(b0, b1, p, terms, q, pqPartials);
+    });
   }
 
   /** The shuffle-down tree of one warp (v_l += v_{l+o} for o = 16, 8, 4, 2, 1): lane 0's result, where only the first
@@ -298,14 +358,106 @@ private:
     }
   }
 
-  /** q = K p (0 on fixed nodes) at the nodes of node blocks [b0, b1) from the element stresses, and each block's
-   * partial sum of p . q (NodeApplyBlock: one warp per node, lane l summing the node's incident elements l, l + 32, ...
-   * in element order, then the warp's tree). */
+  /** ElasticElementStress for the elements of element blocks [b0, b1), Lanes elements at a time (the same operations in
+   * the same order for every element, written lane-innermost so that the compiler can put the lanes in vector
+   * registers), and each element's node terms: for element e = block Lanes + lane, terms[((block (D + 1) + slot) D + r)
+   * Lanes + lane] = component r of AddElasticNodeTerm of its stress and gradient `slot` added to y = 0, which is what a
+   * warp lane that takes only this incidence sums (m_TermOffset has each incidence's r = 0 position). The stresses are
+   * not kept: the few lanes with a second incidence (nodes with more than 32 elements) recompute theirs. */
+  void
+  ElementBlocks(size_t b0, size_t b1, const std::vector<double> & p, std::vector<double> & terms) const
+  {
+    constexpr unsigned int NV = D + 1;
+    for (size_t block = b0; block < b1; ++block)
+    {
+      const double *  g = &m_BlockGeometry[block * Stride * Lanes];
+      const int32_t * vertices = &m_BlockVertices[block * NV * Lanes];
+      double          pv[NV][D][Lanes], G[D][D][Lanes], trace[Lanes], S[D][D][Lanes];
+      for (unsigned int b = 0; b < NV; ++b)
+      {
+        for (unsigned int l = 0; l < Lanes; ++l)
+        {
+          const double * pb = &p[static_cast<size_t>(vertices[b * Lanes + l]) * D];
+          for (unsigned int i = 0; i < D; ++i)
+          {
+            pv[b][i][l] = pb[i];
+          }
+        }
+      }
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          for (unsigned int l = 0; l < Lanes; ++l)
+          {
+            G[i][j][l] = 0.0;
+          }
+          for (unsigned int b = 0; b < NV; ++b)
+          {
+            for (unsigned int l = 0; l < Lanes; ++l)
+            {
+              G[i][j][l] += pv[b][i][l] * g[(b * D + j) * Lanes + l];
+            }
+          }
+        }
+      }
+      for (unsigned int l = 0; l < Lanes; ++l)
+      {
+        trace[l] = 0.0;
+      }
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int l = 0; l < Lanes; ++l)
+        {
+          trace[l] += G[i][i][l];
+        }
+      }
+      const double * V = &g[(NV * D) * Lanes];
+      for (unsigned int i = 0; i < D; ++i)
+      {
+        for (unsigned int j = 0; j < D; ++j)
+        {
+          for (unsigned int l = 0; l < Lanes; ++l)
+          {
+            S[i][j][l] = V[l] * ((i == j ? m_Lambda * trace[l] : 0.0) + m_Mu * (G[i][j][l] + G[j][i][l]));
+          }
+        }
+      }
+      double * t = &terms[block * Lanes * NV * D];
+      for (unsigned int slot = 0; slot < NV; ++slot)
+      {
+        for (unsigned int r = 0; r < D; ++r)
+        {
+          double y[Lanes];
+          for (unsigned int l = 0; l < Lanes; ++l)
+          {
+            y[l] = 0.0;
+          }
+          for (unsigned int c = 0; c < D; ++c)
+          {
+            for (unsigned int l = 0; l < Lanes; ++l)
+            {
+              y[l] += S[r][c][l] * g[(slot * D + c) * Lanes + l];
+            }
+          }
+          for (unsigned int l = 0; l < Lanes; ++l)
+          {
+            t[(slot * D + r) * Lanes + l] = y[l];
+          }
+        }
+      }
+    }
+  }
+
+  /** q = K p (0 on fixed nodes) at the nodes of node blocks [b0, b1) from the element stresses and node terms, and each
+   * block's partial sum of p . q (NodeApplyBlock: one warp per node, lane l summing the node's incident elements l,
+   * l + 32, ... in element order, then the warp's tree). A lane's first incidence is its node term; only nodes with
+   * more than 32 incident elements add further ones here. */
   void
   ApplyNodeBlocks(size_t                      b0,
                   size_t                      b1,
                   const std::vector<double> & p,
-                  const std::vector<double> & stress,
+                  const std::vector<double> & terms,
                   std::vector<double> &       q,
                   std::vector<double> &       pqPartials) const
   {
@@ -327,27 +479,40 @@ private:
         int    lanes = 0;
         if (!Fixed(a))
         {
-          lanes = static_cast<int>(std::min<int64_t>(Warp, m_Start[a + 1] - m_Start[a]));
+          const int64_t begin = m_Start[a], end = m_Start[a + 1];
+          lanes = static_cast<int>(std::min<int64_t>(Warp, end - begin));
           for (int lane = 0; lane < lanes; ++lane)
           {
-            std::fill(y[lane], y[lane] + D, 0.0);
-            for (int64_t i = m_Start[a] + lane; i < m_Start[a + 1]; i += Warp)
+            const double * t = &terms[m_TermOffset[begin + lane]];
+            for (unsigned int k = 0; k < D; ++k)
             {
-              const size_t e = static_cast<size_t>(m_Incidence[i] / NV),
-                           slot = static_cast<size_t>(m_Incidence[i] % NV);
-              AddElasticNodeTerm<D>(&stress[e * D * D], &m_Geometry[e * Stride + slot * D], y[lane]);
+              y[lane][k] = t[k * Lanes];
             }
           }
+          for (int64_t i = begin + Warp; i < end; ++i)
+          {
+            const size_t e = static_cast<size_t>(m_Incidence[i] / NV), slot = static_cast<size_t>(m_Incidence[i] % NV);
+            double       S[D * D];
+            ElasticElementStress<D>(&m_Geometry[e * Stride], m_Mesh->elements[e].data(), p.data(), m_Lambda, m_Mu, S);
+            AddElasticNodeTerm<D>(S, &m_Geometry[e * Stride + slot * D], y[(i - begin) % Warp]);
+          }
+        }
+        // the warp's shuffle-down tree for the D sums at once (WarpSum's additions, component by component)
+        for (int o = Warp / 2, n = lanes; o > 0; o >>= 1)
+        {
+          for (int l = 0; l < std::min(o, n - o); ++l)
+          {
+            for (unsigned int k = 0; k < D; ++k)
+            {
+              y[l][k] = y[l][k] + y[l + o][k];
+            }
+          }
+          n = std::min(n, o);
         }
         double sum = 0.0;
         for (unsigned int k = 0; k < D; ++k)
         {
-          double v[Warp];
-          for (int lane = 0; lane < lanes; ++lane)
-          {
-            v[lane] = y[lane][k];
-          }
-          const double yk = WarpSum(v, lanes);
+          const double yk = lanes > 0 ? y[0][k] : 0.0;
           q[a * D + k] = yk;
           sum += p[a * D + k] * yk;
         }
@@ -367,6 +532,9 @@ private:
   double                 m_Lambda{ 0.0 };
   double                 m_Mu{ 0.0 };
   std::vector<double>    m_Geometry;
+  std::vector<double>    m_BlockGeometry; // m_Geometry in blocks of Lanes elements, lane innermost
+  std::vector<int32_t>   m_BlockVertices; // the elements' vertices, likewise
+  std::vector<size_t>    m_TermOffset;    // per incidence: where its node term starts in ElementBlocks' output
   std::vector<int64_t>   m_Start, m_Incidence;
   std::vector<double>    m_InverseDiagonal;
 };
