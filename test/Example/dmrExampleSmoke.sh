@@ -503,6 +503,23 @@ run-3d-default-nodes)
   check "registration without --nodes exits 0" test "$RC" = 0
   [ "$RC" = 0 ] || finish
   check_run_outputs "$out" 2 dynamic 240 3 "$W/fixed3d.nii.gz"
+  check "report: the GPU-order solve is the default" grep -Eq '^ *"gpu_order_solve": true,?$' "$out/report.json"
+  # every system by conjugate gradients, in the GPU's order and on the assembled matrix: both register alike
+  for solve in --gpu-order-solve --assembled-solve; do
+    run_reg --fixed "$W/fixed3d.nii.gz" --moving "$W/moving3d.nii.gz" --output-dir "$W/cg$solve" --iterations 2 \
+      --threads 2 --direct-solve-max-dofs 0 $solve
+    check "$solve exits 0" test "$RC" = 0
+    [ "$RC" = 0 ] || finish
+    check "$solve: conjugate gradients ran ($(json_number "$W/cg$solve/report.json" cg_products) products)" \
+      awk_true "$(json_number "$W/cg$solve/report.json" cg_products) > 0"
+  done
+  check "report: --assembled-solve says so" grep -Eq '^ *"gpu_order_solve": false,?$' "$W/cg--assembled-solve/report.json"
+  check "report: --gpu-order-solve says so" grep -Eq '^ *"gpu_order_solve": true,?$' "$W/cg--gpu-order-solve/report.json"
+  ssdA=$(json_number "$W/cg--gpu-order-solve/report.json" ssd_final)
+  ssdB=$(json_number "$W/cg--assembled-solve/report.json" ssd_final)
+  ssd0=$(json_number "$out/report.json" ssd_initial)
+  check "both solves register alike (SSD $ssd0 -> $ssdA and $ssdB)" \
+    awk_true "$ssdA < 0.95 * $ssd0 && $ssdB < 0.95 * $ssd0 && ($ssdA - $ssdB)^2 < (1e-4 * $ssdA)^2"
   ;;
 run-itk-globals)
   # every ITK global is created on the main thread, also when the tool reads its inputs side by side on threads (ITK

@@ -113,8 +113,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, DeviceSolverMinimumDegreesOfFreedom, 0u);
   DMR_EXPECT_SET_GET(method, DirectSolverMaximumDegreesOfFreedom, 40u);
   DMR_EXPECT_SET_GET(method, ComputeInverse, true);
-  EXPECT_FALSE(method->GetGPUOrderSolve()); // the default
-  DMR_EXPECT_SET_GET(method, GPUOrderSolve, true);
+  EXPECT_TRUE(method->GetGPUOrderSolve()); // the default
+  DMR_EXPECT_SET_GET(method, GPUOrderSolve, false);
   method->SetSolverTolerance(1.0); // clamped to the loosest tolerance allowed
   EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
   method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least
@@ -152,7 +152,7 @@ TEST(FEMRegistrationMethod, SolverToleranceSetsWhereTheSolveStops)
 }
 
 // GPUOrderSolve: every system by the GPU-order CG (its equality with the device is a GPU test); the run registers as
-// the default CG's does, to the tolerance's reach, and is repeatable bit for bit
+// the assembled CG's does, to the tolerance's reach, and is repeatable bit for bit
 TEST(FEMRegistrationMethod, GPUOrderSolveRegistersLikeTheAssembledCG)
 {
   auto ordered = SmallRegistration(MeshMode::Dynamic, 15);
@@ -164,6 +164,7 @@ TEST(FEMRegistrationMethod, GPUOrderSolveRegistersLikeTheAssembledCG)
     m->SetSolverTolerance(1e-10);
   }
   ordered->SetGPUOrderSolve(true);
+  assembled->SetGPUOrderSolve(false);
   again->SetGPUOrderSolve(true);
   ordered->Update();
   assembled->Update();

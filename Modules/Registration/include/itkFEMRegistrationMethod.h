@@ -236,9 +236,10 @@ public:
   itkGetConstMacro(DirectSolverMaximumDegreesOfFreedom, SizeValueType);
   /** CPU solves of systems above DirectSolverMaximumDegreesOfFreedom by the CUDA back-end's matrix-free CG with its
    * arithmetic in its order (LinearElasticFEMSolver::GPUOrderSolve, dmr::ElasticCG) instead of CG on the assembled
-   * matrix: a CPU run then takes the GPU run's solves bit for bit, so the two stay together where the rounding of two
-   * different CGs would tip a CVT swap decision and part them (a large 3D deformation, docs/benchmarks.md). The CPU
-   * solves take 2-4x longer. Default off. */
+   * matrix (Eigen, warm-started): a CPU run then takes the GPU run's solves bit for bit, so the two back-ends give the
+   * same field where the rounding of two different CGs would tip a CVT swap decision and part them (a large 3D
+   * deformation: up to 0.77 mm apart otherwise, docs/benchmarks.md). Default on. Off, the solves take about 0.75x the
+   * time on 2 threads and more than on 16 (sphere3d; 31st and 32nd sessions in docs/benchmarks.md). */
   itkSetMacro(GPUOrderSolve, bool);
   itkGetConstMacro(GPUOrderSolve, bool);
   itkBooleanMacro(GPUOrderSolve);
@@ -451,7 +452,7 @@ private:
   double            m_SolverTolerance{ 1e-6 };
   SizeValueType     m_DeviceSolverMinimumDegreesOfFreedom{ 301 };
   SizeValueType     m_DirectSolverMaximumDegreesOfFreedom{ 300 };
-  bool              m_GPUOrderSolve{ false };
+  bool              m_GPUOrderSolve{ true };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
   bool              m_ComputeInverse{ false };
 
