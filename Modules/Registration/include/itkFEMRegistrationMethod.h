@@ -238,8 +238,8 @@ public:
    * arithmetic in its order (LinearElasticFEMSolver::GPUOrderSolve, dmr::ElasticCG) instead of CG on the assembled
    * matrix (Eigen, warm-started): a CPU run then takes the GPU run's solves bit for bit, so the two back-ends give the
    * same field where the rounding of two different CGs would tip a CVT swap decision and part them (a large 3D
-   * deformation: up to 0.77 mm apart otherwise, docs/benchmarks.md). Default on. Off, the solves take about 0.75x the
-   * time on 2 threads and more than on 16 (sphere3d; 31st and 32nd sessions in docs/benchmarks.md). */
+   * deformation: up to 0.77 mm apart otherwise, docs/benchmarks.md). Default on. Off, the solves took 0.75x the time on
+   * 2 threads (sphere3d) and 1.25-1.75x on 16 (the 3D shape pairs; 32nd session in docs/benchmarks.md). */
   itkSetMacro(GPUOrderSolve, bool);
   itkGetConstMacro(GPUOrderSolve, bool);
   itkBooleanMacro(GPUOrderSolve);
