@@ -459,6 +459,21 @@ RandomBoxMesh(const itk::dmr::Grid<3> & grid, std::mt19937 & rng)
   return mesh;
 }
 
+/** The largest number of elements that share a node. */
+size_t
+MostIncidentElements(const itk::dmr::SimplexMesh<3> & mesh)
+{
+  std::vector<size_t> incident(mesh.NumberOfNodes(), 0);
+  for (const auto & t : mesh.elements)
+  {
+    for (const int32_t v : t)
+    {
+      ++incident[v];
+    }
+  }
+  return *std::max_element(incident.begin(), incident.end());
+}
+
 /** K p as the CUDA back-end's NodeApplyBlock defines it, written out from the shared per-element and per-node functions
  * of dmrElasticOperator.h: the stress of every element, then per node one warp of 32 lanes, lane l summing the node's
  * incident elements l, l + 32, ... in element order, and the whole shuffle-down tree over the 32 lanes (unused lanes
@@ -520,15 +535,7 @@ TEST(LinearElasticFEMSolver, GPUOrderProductIsTheWarpOrderProduct)
   const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
   std::mt19937            rng(20261124);
   const auto              mesh = RandomBoxMesh(grid, rng);
-  std::vector<size_t>     incident(mesh.NumberOfNodes(), 0);
-  for (const auto & t : mesh.elements)
-  {
-    for (const int32_t v : t)
-    {
-      ++incident[v];
-    }
-  }
-  ASSERT_GT(*std::max_element(incident.begin(), incident.end()), 32u);
+  ASSERT_GT(MostIncidentElements(mesh), 32u);
   ASSERT_NE(mesh.elements.size() % 4, 0u); // a part-filled last block of elements
   itk::dmr::ElasticCG<3> cg;
   cg.SetSystem(mesh, lambda, mu);
@@ -559,15 +566,7 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
   const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 21, 17, 13 }, std::array<double, 3>{ 1.0, 1.3, 2.1 });
   std::mt19937            rng(20261124);
   const auto              mesh = RandomBoxMesh(grid, rng);
-  std::vector<int>        incident(mesh.NumberOfNodes(), 0);
-  for (const auto & t : mesh.elements)
-  {
-    for (const int32_t v : t)
-    {
-      ++incident[v];
-    }
-  }
-  ASSERT_GT(*std::max_element(incident.begin(), incident.end()), 32);
+  ASSERT_GT(MostIncidentElements(mesh), 32u);
   std::vector<double> f(mesh.NumberOfNodes() * 3);
   for (double & v : f)
   {
