@@ -18,6 +18,7 @@
 #ifndef dmrWorkerTeam_h
 #define dmrWorkerTeam_h
 
+#include "dmrGrid.h" // ParallelForChunkIds
 #include "itkMultiThreaderBase.h"
 #include <algorithm>
 #include <atomic>
@@ -336,8 +337,7 @@ public:
     }
     if (m_Unavailable)
     {
-      threader->ParallelizeArray(
-        0, numberOfChunks, [&](SizeValueType c) { body(static_cast<size_t>(c)); }, nullptr);
+      ParallelForChunkIds(threader, numberOfChunks, body);
       return;
     }
     m_Team->Run(numberOfChunks, body);
