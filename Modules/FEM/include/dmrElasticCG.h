@@ -78,7 +78,7 @@ public:
     }
     // the same gradients and volumes in blocks of Lanes elements, lane innermost, for ElementBlocks' loops (padding
     // lanes: zero geometry, vertex 0)
-    const size_t blocks = (ne + Lanes - 1) / Lanes;
+    const size_t blocks = NumberOfElementBlocks();
     m_BlockGeometry.assign(blocks * Stride * Lanes, 0.0);
     m_BlockVertices.assign(blocks * NV * Lanes, 0);
     for (size_t e = 0; e < ne; ++e)
@@ -158,8 +158,7 @@ public:
     const size_t        nn = m_Mesh->NumberOfNodes(), ndof = nn * D;
     const size_t        dofBlocks = (ndof + BlockThreads - 1) / BlockThreads;
     const size_t        nodeBlocks = (nn * Warp + BlockThreads - 1) / BlockThreads;
-    const size_t        elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
-    std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), terms(elementBlocks * Lanes * (D + 1) * D);
+    std::vector<double> r(ndof), z(ndof), p(ndof), q(ndof), terms(NumberOfElementBlocks() * Lanes * (D + 1) * D);
     std::vector<double> rrPartials(dofBlocks), rzPartials(dofBlocks), pqPartials(nodeBlocks);
     TeamRunner          runner;
     auto forRanges = [&](size_t n, size_t grain, auto && body) { ForRanges(runner, threader, n, grain, body); };
@@ -223,8 +222,7 @@ public:
       itkGenericExceptionMacro("ElasticCG: Apply() needs SetSystem() first");
     }
     const size_t        nn = m_Mesh->NumberOfNodes(), ndof = nn * D;
-    const size_t        elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
-    std::vector<double> pv(p, p + ndof), qv(ndof), terms(elementBlocks * Lanes * (D + 1) * D),
+    std::vector<double> pv(p, p + ndof), qv(ndof), terms(NumberOfElementBlocks() * Lanes * (D + 1) * D),
       pqPartials((nn * Warp + BlockThreads - 1) / BlockThreads);
     TeamRunner runner;
     Product(runner, threader, pv, terms, qv, pqPartials);
@@ -269,9 +267,9 @@ private:
           std::vector<double> &       q,
           std::vector<double> &       pqPartials) const
   {
-    const size_t elementBlocks = (m_Mesh->elements.size() + Lanes - 1) / Lanes;
     const size_t nodeBlocks = pqPartials.size();
-    ForRanges(runner, threader, elementBlocks, 256, [&](size_t b0, size_t b1) { ElementBlocks(b0, b1, p, terms); });
+    ForRanges(
+      runner, threader, NumberOfElementBlocks(), 256, [&](size_t b0, size_t b1) { ElementBlocks(b0, b1, p, terms); });
     ForRanges(runner, threader, nodeBlocks, 16, [&](size_t b0, size_t b1) {
       ApplyNodeBlocks(b0, b1, p, terms, q, pqPartials);
     });
@@ -297,6 +295,13 @@ private:
       lanes = std::min(lanes, o);
     }
     return v[0];
+  }
+
+  /** Element blocks of Lanes elements (the last one part-filled). */
+  size_t
+  NumberOfElementBlocks() const
+  {
+    return (m_Mesh->elements.size() + Lanes - 1) / Lanes;
   }
 
   /** BlockCombine's sum of BlockThreads values of which the first `count` are given (the others 0): each warp's tree,
@@ -497,7 +502,8 @@ private:
             AddElasticNodeTerm<D>(S, &m_Geometry[e * Stride + slot * D], y[(i - begin) % Warp]);
           }
         }
-        // the warp's shuffle-down tree for the D sums at once (WarpSum's additions, component by component)
+        // the warp's shuffle-down tree for the D sums at once (WarpSum's additions, component by component; a WarpSum
+        // generalised to D values per lane through a pointer made the product 4 % slower, so it is written out here)
         for (int o = Warp / 2, n = lanes; o > 0; o >>= 1)
         {
           for (int l = 0; l < std::min(o, n - o); ++l)
