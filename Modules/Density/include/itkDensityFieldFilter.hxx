@@ -26,6 +26,7 @@
 #include "itkProgressReporter.h"
 #include "dmrImageMetrics.h"
 #include "dmrDoublePair.h"
+#include "dmrBackEndRounding.h"
 #include <cmath>
 #include <numeric>
 
@@ -876,7 +877,10 @@ DensityFieldFilter<TF, TM, TD, TO>::ComputeAlpha(double meanSquaredForce) const
   const double forceScale = m_MovingForceScale;
   // (constant images: any positive value gives the same uniform density; keep it representable as float)
   const double floor = forceScale > 0.0 ? std::max(1e-12 * forceScale * forceScale, 1e-30) : 1.0;
-  return checked(std::max(m_AlphaFactor * meanSquaredForce, floor)); // (a NaN product stays NaN: max keeps its first)
+  // (a NaN product stays NaN: max keeps its first.) Rounded to single precision's 24 bits, the density's precision:
+  // the mean |f|^2 is a sum over the image whose last bits depend on the order of summation, which differs between the
+  // CPU and the GPU; rounded, both back-ends take the same alpha (see dmr::RoundToSingleSignificand)
+  return dmr::RoundToSingleSignificand(checked(std::max(m_AlphaFactor * meanSquaredForce, floor)));
 }
 
 template <typename TF, typename TM, typename TD, typename TO>

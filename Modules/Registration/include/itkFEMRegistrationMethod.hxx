@@ -28,6 +28,7 @@
 #include "dmrDualMeshBackend.h"
 #include "dmrDualMeshBuilder.h"
 #include "dmrImageMetrics.h"
+#include "dmrBackEndRounding.h"
 #include <chrono>
 #include <cmath>
 #include <future>
@@ -628,7 +629,10 @@ FEMRegistrationMethod<TF, TM, TD>::SolveAndSetBeta(const std::vector<double> & n
                                    "the result)";
       return false;
     }
-    m_Beta = fKf / (2.0 * m_EnergyRatio * mssd); // paper 5.1: beta R / D = EnergyRatio at iteration 1
+    // paper 5.1: beta R / D = EnergyRatio at iteration 1. The MSSD is a sum over the image whose last bits depend on
+    // the order of summation (CPU chunks, GPU blocks); rounded to 24 bits, beta is the same on both back-ends (see
+    // dmr::RoundToSingleSignificand)
+    m_Beta = dmr::RoundToSingleSignificand(fKf / (2.0 * m_EnergyRatio * mssd));
   }
   return true;
 }
