@@ -305,10 +305,13 @@ struct BlockResult
 };
 
 /** The block decomposition of Delaunay3D (see BlockDelaunay3D in the header): false when it does not apply or cannot
- * vouch for its result. `unique`: the distinct nodes. */
+ * vouch for its result. `unique`: the distinct nodes, whose convex hull is their bounding box [lo, hi] (the callers
+ * check it with HullIsBoundingBox). */
 bool
 BlockDelaunay(const std::vector<double> &           xyz,
               const std::vector<int32_t> &          unique,
+              const double *                        lo,
+              const double *                        hi,
               MultiThreaderBase *                   threader,
               double                                marginFactor,
               std::vector<std::array<int32_t, 4>> & tetrahedra,
@@ -319,11 +322,6 @@ BlockDelaunay(const std::vector<double> &           xyz,
   stats = BlockDelaunayStatistics{};
   const size_t n = unique.size();
   if (n < 4 || !(marginFactor > 0.0))
-  {
-    return false;
-  }
-  double lo[3], hi[3];
-  if (!HullIsBoundingBox(xyz, unique, lo, hi))
   {
     return false;
   }
@@ -758,7 +756,8 @@ Delaunay3D(const std::vector<double> &           xyz,
   {
     TetGenOnUnique(xyz, unique, tetrahedra);
   }
-  else if (Parallelism(threader) <= 1 || !BlockDelaunay(xyz, unique, threader, DefaultBlockMargin, tetrahedra, nullptr))
+  else if (Parallelism(threader) <= 1 ||
+           !BlockDelaunay(xyz, unique, lo, hi, threader, DefaultBlockMargin, tetrahedra, nullptr))
   {
     CGALOnUnique(xyz, unique, tetrahedra);
   }
@@ -790,8 +789,9 @@ BlockDelaunay3D(const std::vector<double> &           xyz,
     *statistics = BlockDelaunayStatistics{};
   }
   const std::vector<int32_t> unique = UniqueNodes(xyz);
-  return unique.size() >= 4 && SpansSpace(xyz, unique) &&
-         BlockDelaunay(xyz, unique, threader, marginFactor, tetrahedra, statistics);
+  double                     lo[3], hi[3];
+  return unique.size() >= 4 && SpansSpace(xyz, unique) && HullIsBoundingBox(xyz, unique, lo, hi) &&
+         BlockDelaunay(xyz, unique, lo, hi, threader, marginFactor, tetrahedra, statistics);
 }
 
 size_t
