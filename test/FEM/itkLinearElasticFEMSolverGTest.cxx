@@ -356,6 +356,20 @@ TEST(LinearElasticFEMSolver, ElementStiffnessOfTheReferenceTriangle)
   EXPECT_NEAR(Kl[(1 * 2 + 0) * 6 + 2 * 2 + 1] - Ke[(1 * 2 + 0) * 6 + 2 * 2 + 1], 0.5 * 3.0 * g[1][0] * g[2][1], 1e-14);
 }
 
+/** A 3D solver that solves every system by conjugate gradients to 1e-10 (none factorised): in the GPU's order
+ * (dmr::ElasticCG) or on the assembled matrix. */
+itk::LinearElasticFEMSolver<3>::Pointer
+ConjugateGradientSolver(bool gpuOrder)
+{
+  auto solver = itk::LinearElasticFEMSolver<3>::New();
+  solver->SetLambda(lambda);
+  solver->SetMu(mu);
+  solver->SetTolerance(1e-10);
+  solver->SetDirectSolverMaximumDegreesOfFreedom(0);
+  solver->SetGPUOrderSolve(gpuOrder);
+  return solver;
+}
+
 /** GPUOrderSolve (dmr::ElasticCG, the CUDA back-end's CG order on the CPU) solves the same system as the assembled
  * CG: on a 3D regular mesh with a smooth load, both solutions are within the tolerance's reach of the exact
  * (factorised) one, with u = 0 on fixed nodes; the solve takes some products and is repeatable bit for bit; stopped
@@ -389,12 +403,7 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveSolvesTheSystem)
   for (const bool gpuOrder : { false, true })
   {
     SCOPED_TRACE(gpuOrder ? "GPU order" : "assembled CG");
-    auto solver = itk::LinearElasticFEMSolver<3>::New();
-    solver->SetLambda(lambda);
-    solver->SetMu(mu);
-    solver->SetTolerance(1e-10);
-    solver->SetDirectSolverMaximumDegreesOfFreedom(0);
-    solver->SetGPUOrderSolve(gpuOrder);
+    auto solver = ConjugateGradientSolver(gpuOrder);
     solver->SetMesh(mesh);
     ASSERT_FALSE(solver->GetDirect());
     std::vector<double> u;
@@ -591,12 +600,7 @@ TEST(LinearElasticFEMSolver, GPUOrderSolveDoesNotDependOnTheThreads)
     EXPECT_EQ(u, serial);
   }
   // through the solver, with the registration's threader
-  auto solver = itk::LinearElasticFEMSolver<3>::New();
-  solver->SetLambda(lambda);
-  solver->SetMu(mu);
-  solver->SetTolerance(1e-10);
-  solver->SetDirectSolverMaximumDegreesOfFreedom(0);
-  solver->SetGPUOrderSolve(true);
+  auto solver = ConjugateGradientSolver(true);
   auto threader = itk::MultiThreaderBase::New();
   threader->SetNumberOfWorkUnits(3);
   solver->SetMultiThreader(threader);
