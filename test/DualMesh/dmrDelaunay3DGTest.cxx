@@ -22,6 +22,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iostream>
 #include <random>
 
 namespace
@@ -567,4 +568,189 @@ TEST(Delaunay3D, BlocksRefuseWhatTheyCannotVouchFor)
   // Delaunay3D falls back to TetGen there, with the same defining properties
   EXPECT_EQ(itk::dmr::Delaunay3D(noCorner, t, Threader(2)), 0u);
   ASSERT_FALSE(t.empty());
+}
+
+namespace
+{
+/** The nodes moved by up to `step` along the axes where they are not on the box (face nodes stay on their face, edge
+ * nodes on their edge, corners where they are); a move that would leave the box is not made. */
+std::vector<double>
+MoveNodes(std::vector<double> xyz, const double (&side)[3], double step, uint32_t seed)
+{
+  std::mt19937                           rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (size_t i = 0; i < xyz.size(); ++i)
+  {
+    const unsigned int k = i % 3;
+    if (xyz[i] != 0.0 && xyz[i] != side[k])
+    {
+      const double x = xyz[i] + step * u(rng);
+      xyz[i] = x > 0.0 && x < side[k] ? x : xyz[i];
+    }
+  }
+  return xyz;
+}
+} // namespace
+
+/** The registration's nodes move a little from one iteration to the next: RepairDelaunay3D flips the last
+ * tetrahedralization into the new one. Whenever it vouches for its result, that is Delaunay3D's list exactly; over a
+ * sequence of moves it must both untangle inverted tetrahedra and flip non-Delaunay faces (2-3 and 3-2) at least once.
+ */
+TEST(Delaunay3D, RepairFromMovedNodesGivesDelaunay3DsList)
+{
+  const double side[3] = { 300.0, 260.0, 180.0 };
+  const double h = 16.0;
+  auto         xyz = DualMeshLikeNodes(side[0], side[1], side[2], h, false, false, 9u);
+  Tetrahedra   previous;
+  itk::dmr::Delaunay3D(xyz, previous, Threader(2));
+  // unmoved nodes: the same list, nothing flipped
+  Tetrahedra                         t;
+  itk::dmr::DelaunayRepairStatistics statistics;
+  ASSERT_TRUE(itk::dmr::RepairDelaunay3D(xyz, previous, t, Threader(2), &statistics));
+  EXPECT_EQ(t, previous);
+  EXPECT_EQ(statistics.flips23 + statistics.flips32 + statistics.flips22 + statistics.tangledTetrahedra, 0u);
+
+  size_t repaired = 0, untangled = 0, flipped23 = 0, flipped32 = 0, flippedOnBox = 0;
+  for (uint32_t move = 0; move < 24; ++move)
+  {
+    const double step = h * (move % 3 == 0 ? 0.003 : (move % 3 == 1 ? 0.01 : 0.03));
+    xyz = MoveNodes(xyz, side, step, 100 + move);
+    Tetrahedra reference;
+    itk::dmr::Delaunay3D(xyz, reference, Threader(2));
+    for (const unsigned int workUnits : { 1u, 2u, 5u })
+    {
+      if (itk::dmr::RepairDelaunay3D(xyz, previous, t, Threader(workUnits), &statistics))
+      {
+        ASSERT_EQ(t, reference) << "move " << move << ", " << workUnits << " work units";
+        repaired += workUnits == 1 ? 1 : 0;
+        untangled += statistics.tangledTetrahedra > 0 ? 1 : 0;
+        flipped23 += statistics.flips23;
+        flipped32 += statistics.flips32;
+        flippedOnBox += statistics.flips22;
+      }
+      else
+      {
+        EXPECT_TRUE(t.empty());
+      }
+    }
+    previous = reference;
+  }
+  std::cout << "repaired " << repaired << " of 24 moves; untangled " << untangled << "; flips 2-3 " << flipped23
+            << ", 3-2 " << flipped32 << ", 2-2 on the box " << flippedOnBox << std::endl;
+  EXPECT_GE(repaired, 12u);
+  EXPECT_GT(untangled, 0u);
+  EXPECT_GT(flipped23, 0u);
+  EXPECT_GT(flipped32, 0u);
+  EXPECT_GT(flippedOnBox, 0u);
+}
+
+/** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are,
+ * and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's CGAL run decides there). */
+TEST(Delaunay3D, RepairRefusesWhatItCannotVouchFor)
+{
+  const double side[3] = { 300.0, 260.0, 180.0 };
+  const auto   xyz = DualMeshLikeNodes(side[0], side[1], side[2], 16.0, false, false, 10u);
+  Tetrahedra   reference, t;
+  itk::dmr::Delaunay3D(xyz, reference, Threader(2));
+  ASSERT_TRUE(itk::dmr::RepairDelaunay3D(xyz, reference, t));
+  EXPECT_EQ(t, reference);
+  auto expectRefused = [&](const std::vector<double> & nodes, const Tetrahedra & previous, const char * what) {
+    Tetrahedra out{ { 0, 1, 2, 3 } };
+    EXPECT_FALSE(itk::dmr::RepairDelaunay3D(nodes, previous, out, Threader(2))) << what;
+    EXPECT_TRUE(out.empty()) << what;
+  };
+  expectRefused(xyz, Tetrahedra{}, "no earlier tetrahedra");
+  Tetrahedra bad = reference;
+  bad[5][2] = static_cast<int32_t>(xyz.size() / 3);
+  expectRefused(xyz, bad, "a node index out of range");
+  bad = reference;
+  bad.pop_back();
+  expectRefused(xyz, bad, "a tetrahedron missing");
+  bad = reference;
+  bad.push_back(reference.front());
+  expectRefused(xyz, bad, "a tetrahedron twice");
+  // one more node, in no tetrahedron
+  std::vector<double> more = xyz;
+  more.insert(more.end(), { 0.5 * side[0], 0.5 * side[1], 0.5 * side[2] });
+  expectRefused(more, reference, "a node in no tetrahedron");
+  // a face node moved off its face: the free faces no longer lie on the box
+  std::vector<double> off = xyz;
+  for (size_t i = 8; i < off.size() / 3; ++i)
+  {
+    if (off[3 * i + 2] == 0.0 && off[3 * i] != 0.0 && off[3 * i] != side[0] && off[3 * i + 1] != 0.0 &&
+        off[3 * i + 1] != side[1])
+    {
+      off[3 * i + 2] = 3.0;
+      break;
+    }
+  }
+  expectRefused(off, reference, "a face node off its face");
+  // a lattice: cospherical nodes everywhere
+  std::vector<double> lattice;
+  for (int k = 0; k < 6; ++k)
+  {
+    for (int j = 0; j < 6; ++j)
+    {
+      for (int i = 0; i < 6; ++i)
+      {
+        lattice.insert(lattice.end(), { 2.0 * i, 2.0 * j, 3.0 * k });
+      }
+    }
+  }
+  Tetrahedra latticeTetrahedra;
+  itk::dmr::Delaunay3D(lattice, latticeTetrahedra);
+  ASSERT_FALSE(latticeTetrahedra.empty());
+  expectRefused(lattice, latticeTetrahedra, "cospherical nodes");
+}
+
+/** NonDegenerateDelaunay3D from a warm start gives what it gives without one, nudged nodes included. */
+TEST(Delaunay3D, NudgingFromAWarmStartGivesTheSameResult)
+{
+  const double         side[3] = { 300.0, 260.0, 180.0 };
+  const auto           start = DualMeshLikeNodes(side[0], side[1], side[2], 16.0, false, false, 12u);
+  std::vector<uint8_t> freeAxes(start.size() / 3, 7u);
+  for (size_t i = 0; i < freeAxes.size(); ++i)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      if (start[3 * i + k] == 0.0 || start[3 * i + k] == side[k])
+      {
+        freeAxes[i] &= static_cast<uint8_t>(~(1u << k));
+      }
+    }
+  }
+  std::vector<double> warmNodes = start;
+  Tetrahedra          warm;
+  itk::dmr::NonDegenerateDelaunay3D(warmNodes, freeAxes, 0.25, warm, flatShape, rounds, Threader(2));
+  size_t repairedCount = 0;
+  for (uint32_t move = 0; move < 6; ++move)
+  {
+    const auto          moved = MoveNodes(start, side, 0.05 * (move + 1), 200 + move);
+    std::vector<double> a = moved, b = moved;
+    Tetrahedra          fromWarm, fresh;
+    bool                repaired = false;
+    const size_t        nudgedWarm =
+      itk::dmr::NonDegenerateDelaunay3D(a, freeAxes, 0.25, fromWarm, flatShape, rounds, Threader(2), &warm, &repaired);
+    const size_t nudgedFresh =
+      itk::dmr::NonDegenerateDelaunay3D(b, freeAxes, 0.25, fresh, flatShape, rounds, Threader(2));
+    EXPECT_EQ(fromWarm, fresh) << "move " << move;
+    EXPECT_EQ(a, b) << "move " << move;
+    EXPECT_EQ(nudgedWarm, nudgedFresh);
+    repairedCount += repaired ? 1 : 0;
+    warm = fromWarm;
+  }
+  EXPECT_GT(repairedCount, 0u) << "the warm start was never used";
+  // near-flat tetrahedra (a lattice with tiny noise), warm-started from the tetrahedralization of a noisier one: the
+  // nodes are nudged as without the warm start
+  std::vector<double>  noisy = NoisyLattice(1e-2), a = NoisyLattice(1e-13), b = a;
+  std::vector<uint8_t> latticeAxes(a.size() / 3, 7u);
+  std::fill(latticeAxes.begin(), latticeAxes.begin() + 8, uint8_t{ 0 });
+  Tetrahedra noisyTetrahedra, fromWarm, fresh;
+  itk::dmr::Delaunay3D(noisy, noisyTetrahedra, Threader(2));
+  const size_t nudged =
+    itk::dmr::NonDegenerateDelaunay3D(a, latticeAxes, 0.05, fromWarm, flatShape, rounds, Threader(2), &noisyTetrahedra);
+  EXPECT_GT(nudged, 0u);
+  EXPECT_EQ(nudged, itk::dmr::NonDegenerateDelaunay3D(b, latticeAxes, 0.05, fresh, flatShape, rounds, Threader(2)));
+  EXPECT_EQ(a, b);
+  EXPECT_EQ(fromWarm, fresh);
 }

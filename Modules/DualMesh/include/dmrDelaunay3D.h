@@ -92,6 +92,34 @@ BlockDelaunay3D(const std::vector<double> &           xyz,
                 double                                marginFactor = DefaultBlockMargin,
                 BlockDelaunayStatistics *             statistics = nullptr);
 
+/** What RepairDelaunay3D did. */
+struct DelaunayRepairStatistics
+{
+  size_t tangledTetrahedra{ 0 }; // earlier tetrahedra that the moved nodes turned inside out (or flat)
+  size_t nonDelaunayFaces{ 0 };  // faces of the others that the moved nodes left not strictly Delaunay
+  size_t flips23{ 0 };
+  size_t flips32{ 0 };
+  size_t flips22{ 0 }; // on a box face
+};
+
+/** Delaunay3D of nodes that moved since an earlier tetrahedralization of them (previous: node indices, e.g. the last
+ * iteration's dual mesh; the registration's nodes move a little each iteration), by flips instead of a new run.
+ * It applies when previous, with the nodes where they are now, still tiles the nodes' bounding box (every node a
+ * vertex, every tetrahedron positively oriented, the free faces on the box, the volumes summing to the box's). From
+ * there, every face that is not locally Delaunay is flipped (2-3 and 3-2 flips, 2-2 flips on a box face; exact
+ * predicates) until none is left. A tiling whose every inner face is *strictly* locally Delaunay (no opposite node on
+ * the circumsphere) is the unique Delaunay tetrahedralization of its nodes, so the result is then Delaunay3D's list
+ * exactly (canonical tetrahedra, sorted), whatever the threads. Returns false, with no tetrahedra, when it cannot
+ * vouch for that: previous does not tile the box with the nodes as they are now, a flip would need a coplanar
+ * configuration inside the box, flips get stuck, or cospherical nodes leave a choice (Delaunay3D then decides by
+ * CGAL's symbolic perturbation). The caller then runs Delaunay3D. threader: the work units of the checks. */
+DynamicMeshRegistration_EXPORT bool
+RepairDelaunay3D(const std::vector<double> &                 xyz,
+                 const std::vector<std::array<int32_t, 4>> & previous,
+                 std::vector<std::array<int32_t, 4>> &       tetrahedra,
+                 MultiThreaderBase *                         threader = nullptr,
+                 DelaunayRepairStatistics *                  statistics = nullptr);
+
 /** Threshold of NonDegenerateDelaunay3D as DualMeshFilter uses it: a tetrahedron with shape below 1e-6 counts as flat.
  * Its four nodes are then coplanar to within a millionth of its size: its volume is still far above double round-off
  * (about 1e-14 relative for images up to a few thousand voxels across), but its FEM stiffness would scale as 1/shape.
@@ -112,15 +140,19 @@ TetrahedronShape(const double * a, const double * b, const double * c, const dou
  * 1% of that tetrahedron's longest edge along its largest axis, doubling each round, never more than maximumStep.
  * No node is added (no Steiner points). xyz is updated in place; returns the number of nodes that ended up off their
  * input position (0 for generic input, which is then exactly Delaunay3D). Throws an itk::ExceptionObject when a flat
- * tetrahedron remains after maximumRounds rounds or consists of pinned nodes only. */
+ * tetrahedron remains after maximumRounds rounds or consists of pinned nodes only.
+ * warmStart (optional): an earlier tetrahedralization of these nodes, tried first through RepairDelaunay3D; the result
+ * does not depend on it. repaired (optional): set to whether the first round's tetrahedralization came from it. */
 DynamicMeshRegistration_EXPORT size_t
-NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
-                        const std::vector<uint8_t> &          freeAxes,
-                        double                                maximumStep,
-                        std::vector<std::array<int32_t, 4>> & tetrahedra,
-                        double                                minimumShape,
-                        unsigned int                          maximumRounds,
-                        MultiThreaderBase *                   threader = nullptr);
+NonDegenerateDelaunay3D(std::vector<double> &                       xyz,
+                        const std::vector<uint8_t> &                freeAxes,
+                        double                                      maximumStep,
+                        std::vector<std::array<int32_t, 4>> &       tetrahedra,
+                        double                                      minimumShape,
+                        unsigned int                                maximumRounds,
+                        MultiThreaderBase *                         threader = nullptr,
+                        const std::vector<std::array<int32_t, 4>> * warmStart = nullptr,
+                        bool *                                      repaired = nullptr);
 } // namespace dmr
 } // namespace itk
 

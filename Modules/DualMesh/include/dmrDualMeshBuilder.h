@@ -287,6 +287,7 @@ struct DualMeshStatistics
   size_t numberOfInnerAdjacencyEdges{ 0 };
   size_t numberOfMissingAdjacencyEdges{ 0 };
   size_t numberOfPerturbedNodes{ 0 };
+  bool   repairedFromWarmStart{ false }; // 3D: the tetrahedralization came from the warm start (RepairDelaunay3D)
 };
 
 /** Compacts the used nodes, orients the elements, marks the border nodes and checks that the elements tile the
@@ -343,17 +344,20 @@ constexpr bool DefaultSnapToBoxEdges = true;
  * sitesGridFrame: D coordinates per cell (the site of cell c at D c, grid frame), used for the inner cells; nullptr
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
  * threader: the work units of the 3D Delaunay tetrahedralization (Delaunay3D; nullptr: serial); the mesh does not
- * depend on it.
+ * depend on it. tetrahedraWarmStart (3D, optional, in and out): the tetrahedra (node = cell indices, before
+ * compaction) of an earlier call, e.g. the last iteration's; when the nodes moved little, RepairDelaunay3D flips them
+ * into this call's tetrahedralization instead of a new one, with the same result. Replaced by this call's.
  * Throws an itk::ExceptionObject for a cell without voxels, a summary of another grid, a 3D grid thinner than 2
  * voxels, or a mesh that does not tile the box. */
 template <unsigned int D>
 SimplexMesh<D>
-BuildDualMesh(const Grid<D> &      grid,
-              const LabelSummary & summary,
-              const double *       sitesGridFrame,
-              bool                 snapToBoxEdges = DefaultSnapToBoxEdges,
-              DualMeshStatistics * statistics = nullptr,
-              MultiThreaderBase *  threader = nullptr)
+BuildDualMesh(const Grid<D> &                       grid,
+              const LabelSummary &                  summary,
+              const double *                        sitesGridFrame,
+              bool                                  snapToBoxEdges = DefaultSnapToBoxEdges,
+              DualMeshStatistics *                  statistics = nullptr,
+              MultiThreaderBase *                   threader = nullptr,
+              std::vector<std::array<int32_t, 4>> * tetrahedraWarmStart = nullptr)
 {
   static_assert(D == 2 || D == 3, "the dual mesh is defined in 2D (triangles) and 3D (tetrahedra)");
   if (summary.dimension != D)
@@ -527,8 +531,20 @@ BuildDualMesh(const Grid<D> &      grid,
     {
       minimumSpacing = std::min(minimumSpacing, grid.spacing[k]);
     }
-    stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(
-      nodes, freeAxes, 0.25 * minimumSpacing, elements, DefaultMinimumTetrahedronShape, 12, threader);
+    const bool warm = tetrahedraWarmStart && !tetrahedraWarmStart->empty();
+    stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(nodes,
+                                                           freeAxes,
+                                                           0.25 * minimumSpacing,
+                                                           elements,
+                                                           DefaultMinimumTetrahedronShape,
+                                                           12,
+                                                           threader,
+                                                           warm ? tetrahedraWarmStart : nullptr,
+                                                           &stats.repairedFromWarmStart);
+    if (tetrahedraWarmStart)
+    {
+      *tetrahedraWarmStart = elements;
+    }
     // how much of the CVT adjacency between inner cells the tetrahedralization holds (when asked for)
     for (size_t k = 0; statistics && k < summary.adjacentPairs.size(); ++k)
     {

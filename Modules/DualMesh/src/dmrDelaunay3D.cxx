@@ -724,6 +724,512 @@ TetGenOnUnique(const std::vector<double> &           xyz,
   }
   std::sort(tetrahedra.begin(), tetrahedra.end()); // the order of BlockDelaunay3D
 }
+
+/** The flips of RepairDelaunay3D on a tetrahedralization whose tetrahedra are positively oriented (CGAL's exact
+ * orientation predicate), with the neighbour opposite each vertex (-1 on the box). */
+class FlipRepair
+{
+public:
+  using Point = BlockKernel::Point_3;
+
+  FlipRepair(const std::vector<Point> & points, std::vector<std::array<int32_t, 4>> tetrahedra)
+    : m_Points(points)
+    , m_Vertices(std::move(tetrahedra))
+  {
+  }
+
+  /** Neighbours from matching faces (their sorted node triples, in three counting-sort passes over the node
+   * indices): false unless every face is held by one or two tetrahedra. */
+  bool
+  Link(size_t numberOfNodes)
+  {
+    const size_t                        nt = m_Vertices.size(), nf = 4 * nt;
+    std::vector<std::array<int32_t, 3>> key(nf);
+    for (size_t t = 0; t < nt; ++t)
+    {
+      for (unsigned int i = 0; i < 4; ++i)
+      {
+        auto & k = key[4 * t + i];
+        k = { m_Vertices[t][(i + 1) % 4], m_Vertices[t][(i + 2) % 4], m_Vertices[t][(i + 3) % 4] };
+        std::sort(k.begin(), k.end());
+      }
+    }
+    std::vector<uint32_t> order(nf), sorted(nf), count(numberOfNodes + 1);
+    std::iota(order.begin(), order.end(), 0u);
+    for (int digit = 2; digit >= 0; --digit)
+    {
+      std::fill(count.begin(), count.end(), 0u);
+      for (const uint32_t f : order)
+      {
+        ++count[key[f][digit] + 1];
+      }
+      std::partial_sum(count.begin(), count.end(), count.begin());
+      for (const uint32_t f : order)
+      {
+        sorted[count[key[f][digit]]++] = f;
+      }
+      order.swap(sorted);
+    }
+    m_Neighbours.assign(nt, { -1, -1, -1, -1 });
+    for (size_t k = 0; k < nf;)
+    {
+      size_t e = k + 1;
+      while (e < nf && key[order[e]] == key[order[k]])
+      {
+        ++e;
+      }
+      if (e - k > 2)
+      {
+        return false;
+      }
+      if (e - k == 2)
+      {
+        const uint32_t a = order[k], b = order[k + 1];
+        m_Neighbours[a / 4][a % 4] = static_cast<int32_t>(b / 4);
+        m_Neighbours[b / 4][b % 4] = static_cast<int32_t>(a / 4);
+      }
+      k = e;
+    }
+    return true;
+  }
+
+  /** The tetrahedra of [begin, end) that are not positively oriented (flags in `positive`, the others listed). */
+  void
+  Orient(size_t begin, size_t end, std::vector<uint8_t> & positive, std::vector<int32_t> & others) const
+  {
+    for (size_t t = begin; t < end; ++t)
+    {
+      positive[t] =
+        Orientation(m_Vertices[t][0], m_Vertices[t][1], m_Vertices[t][2], m_Vertices[t][3]) == CGAL::POSITIVE;
+      if (!positive[t])
+      {
+        others.push_back(static_cast<int32_t>(t));
+      }
+    }
+  }
+
+  /** The faces (tetrahedron x 4 + face) of the positively oriented tetrahedra of [begin, end) that are not strictly
+   * locally Delaunay (the opposite node inside the circumsphere or on it), each shared face tested once (from its lower
+   * tetrahedron). (A face of a tetrahedron that is not positive is checked once the untangling has replaced it.) */
+  void
+  NonDelaunayFaces(size_t begin, size_t end, const std::vector<uint8_t> & positive, std::vector<uint32_t> & faces) const
+  {
+    for (size_t t = begin; t < end; ++t)
+    {
+      for (unsigned int i = 0; i < 4 && positive[t]; ++i)
+      {
+        const int32_t u = m_Neighbours[t][i];
+        if (u > static_cast<int32_t>(t))
+        {
+          const CGAL::Bounded_side side = Side(static_cast<int32_t>(t), OppositeVertex(u, static_cast<int32_t>(t)));
+          if (side != CGAL::ON_UNBOUNDED_SIDE)
+          {
+            faces.push_back(static_cast<uint32_t>(4 * t + i));
+          }
+        }
+      }
+    }
+  }
+
+  /** Replaces the tetrahedra that are not positively oriented (a node moved through a face) by flips whose new
+   * tetrahedra are all positive: a 2-3 flip with a neighbour whose fourth node now lies on the same side, or a 3-2
+   * flip around one of its edges. Flips keep the boundary of the tetrahedra and so the signed volume they cover. The
+   * faces of the new tetrahedra go into `queue`. False when some cannot be replaced or after maximumFlips flips. */
+  bool
+  Untangle(std::vector<int32_t>       tangled,
+           std::vector<uint32_t> &    queue,
+           size_t                     maximumFlips,
+           DelaunayRepairStatistics & stats)
+  {
+    std::vector<int32_t> stuck;
+    while (!tangled.empty())
+    {
+      bool progress = false;
+      stuck.clear();
+      for (const int32_t t : tangled)
+      {
+        if (m_Dead[t] || m_Created[t])
+        {
+          continue; // replaced (its slot may hold a new, positive tetrahedron)
+        }
+        if (stats.flips23 + stats.flips32 >= maximumFlips)
+        {
+          return false;
+        }
+        if (UntangleOne(t, queue, stats))
+        {
+          progress = true;
+        }
+        else
+        {
+          stuck.push_back(t);
+        }
+      }
+      if (!progress)
+      {
+        return stuck.empty();
+      }
+      tangled.swap(stuck);
+    }
+    return true;
+  }
+
+  /** Flips from the faces in `queue` until every face they lead to is locally Delaunay (cospherical faces are left
+   * alone), at most maximumFlips flips. False on a coplanar configuration inside the box (a 4-4 flip) or too many
+   * flips; faces that cannot be flipped are left for the final check. */
+  bool
+  Flip(std::vector<uint32_t> queue, size_t maximumFlips, DelaunayRepairStatistics & stats)
+  {
+    while (!queue.empty())
+    {
+      const uint32_t f = queue.back();
+      queue.pop_back();
+      const int32_t t = static_cast<int32_t>(f / 4);
+      const int     i = static_cast<int>(f % 4);
+      const int32_t u = m_Neighbours[t][i];
+      if (m_Dead[t] || u < 0)
+      {
+        continue;
+      }
+      const int32_t d = m_Vertices[t][i];
+      const int32_t e = OppositeVertex(u, t);
+      if (Side(t, e) != CGAL::ON_BOUNDED_SIDE)
+      {
+        continue;
+      }
+      if (stats.flips23 + stats.flips32 + stats.flips22 >= maximumFlips)
+      {
+        return false;
+      }
+      // the face (a, b, c) with d on its positive side, e on its negative side; where the line de meets its plane
+      const int32_t abc[3] = { m_Vertices[t][FaceIndex[i][0]],
+                               m_Vertices[t][FaceIndex[i][1]],
+                               m_Vertices[t][FaceIndex[i][2]] };
+      CGAL::Sign    side[3];
+      int           negative = 0, zero = 0, edge = -1;
+      for (int k = 0; k < 3; ++k)
+      {
+        side[k] = Orientation(abc[k], abc[(k + 1) % 3], e, d);
+        if (side[k] == CGAL::NEGATIVE)
+        {
+          ++negative;
+          edge = k;
+        }
+        else if (side[k] == CGAL::ZERO)
+        {
+          ++zero;
+          edge = k;
+        }
+      }
+      if (negative == 0 && zero == 0)
+      {
+        Flip23(t, u, abc, d, e, queue);
+        ++stats.flips23;
+        continue;
+      }
+      if (negative + zero != 1)
+      {
+        continue; // the line de passes beyond a vertex of the face: not flippable from here
+      }
+      const int32_t x = abc[edge], y = abc[(edge + 1) % 3], z = abc[(edge + 2) % 3];
+      const int32_t w1 = m_Neighbours[t][IndexOf(t, z)], w2 = m_Neighbours[u][IndexOf(u, z)];
+      if (zero == 1)
+      {
+        // d, e, x, y coplanar: a 2-2 flip when that plane is the box's (both faces on it), else a 4-4 flip (not done)
+        if (w1 >= 0 || w2 >= 0)
+        {
+          return false;
+        }
+        if (!Flip32(t, u, -1, x, y, z, d, e, queue))
+        {
+          continue;
+        }
+        ++stats.flips22;
+        continue;
+      }
+      // the line de passes beyond the edge xy: a 3-2 flip when xy has exactly three tetrahedra around it
+      if (w1 < 0 || w1 != w2 || IndexOf(w1, d) < 0 || IndexOf(w1, e) < 0)
+      {
+        continue;
+      }
+      if (Flip32(t, u, w1, x, y, z, d, e, queue))
+      {
+        ++stats.flips32;
+      }
+    }
+    return true;
+  }
+
+  const std::vector<std::array<int32_t, 4>> &
+  Vertices() const
+  {
+    return m_Vertices;
+  }
+  const std::vector<std::array<int32_t, 4>> &
+  Neighbours() const
+  {
+    return m_Neighbours;
+  }
+  bool
+  Dead(size_t t) const
+  {
+    return m_Dead[t] != 0;
+  }
+  bool
+  Created(size_t t) const
+  {
+    return m_Created[t] != 0;
+  }
+  void
+  PrepareFlips()
+  {
+    m_Dead.assign(m_Vertices.size(), 0);
+    m_Created.assign(m_Vertices.size(), 0);
+  }
+
+  /** Whether each of the faces (tetrahedron x 4 + face) is on the box or strictly locally Delaunay. */
+  bool
+  StrictlyDelaunay(const std::vector<uint32_t> & faces) const
+  {
+    for (const uint32_t f : faces)
+    {
+      const int32_t t = static_cast<int32_t>(f / 4), u = m_Neighbours[t][f % 4];
+      if (u >= 0 && Side(t, OppositeVertex(u, t)) != CGAL::ON_UNBOUNDED_SIDE)
+      {
+        return false;
+      }
+    }
+    return true;
+  }
+
+private:
+  /** Face i of a positively oriented tetrahedron (v0, v1, v2, v3): the other three vertices in an order that is
+   * an even permutation with v_i last, so that orientation(face, v_i) is positive. */
+  static constexpr int FaceIndex[4][3] = { { 2, 1, 3 }, { 0, 2, 3 }, { 1, 0, 3 }, { 0, 1, 2 } };
+
+  CGAL::Orientation
+  Orientation(int32_t a, int32_t b, int32_t c, int32_t d) const
+  {
+    return CGAL::orientation(m_Points[a], m_Points[b], m_Points[c], m_Points[d]);
+  }
+
+  /** Where node e lies against the circumsphere of the positively oriented tetrahedron t. */
+  CGAL::Bounded_side
+  Side(int32_t t, int32_t e) const
+  {
+    const auto & v = m_Vertices[t];
+    const auto   s =
+      CGAL::side_of_oriented_sphere(m_Points[v[0]], m_Points[v[1]], m_Points[v[2]], m_Points[v[3]], m_Points[e]);
+    return s == CGAL::ON_POSITIVE_SIDE ? CGAL::ON_BOUNDED_SIDE
+                                       : (s == CGAL::ON_NEGATIVE_SIDE ? CGAL::ON_UNBOUNDED_SIDE : CGAL::ON_BOUNDARY);
+  }
+
+  int
+  IndexOf(int32_t t, int32_t v) const
+  {
+    for (int k = 0; k < 4; ++k)
+    {
+      if (m_Vertices[t][k] == v)
+      {
+        return k;
+      }
+    }
+    return -1;
+  }
+
+  /** The vertex of u that is not in its face shared with t. */
+  int32_t
+  OppositeVertex(int32_t u, int32_t t) const
+  {
+    for (int k = 0; k < 4; ++k)
+    {
+      if (m_Neighbours[u][k] == t)
+      {
+        return m_Vertices[u][k];
+      }
+    }
+    return -1;
+  }
+
+  int32_t
+  NewTetrahedron(const std::array<int32_t, 4> & v)
+  {
+    if (!m_Free.empty())
+    {
+      const int32_t t = m_Free.back();
+      m_Free.pop_back();
+      m_Vertices[t] = v;
+      m_Dead[t] = 0;
+      m_Created[t] = 1;
+      return t;
+    }
+    m_Vertices.push_back(v);
+    m_Neighbours.push_back({ -1, -1, -1, -1 });
+    m_Dead.push_back(0);
+    m_Created.push_back(1);
+    return static_cast<int32_t>(m_Vertices.size() - 1);
+  }
+
+  void
+  Kill(int32_t t)
+  {
+    m_Dead[t] = 1;
+    m_Free.push_back(t);
+  }
+
+  /** The neighbour of old tetrahedron `from` opposite its vertex v (-1 on the box). */
+  int32_t
+  Across(int32_t from, int32_t v) const
+  {
+    return from < 0 ? -1 : m_Neighbours[from][IndexOf(from, v)];
+  }
+
+  /** Makes the face of new tetrahedron t opposite its vertex v face outer tetrahedron o (or the box), and o's face
+   * back. */
+  void
+  Attach(int32_t t, int32_t v, int32_t o)
+  {
+    const int k = IndexOf(t, v);
+    m_Neighbours[t][k] = o;
+    if (o >= 0)
+    {
+      // the vertex of o that is not on the shared face
+      for (int j = 0; j < 4; ++j)
+      {
+        if (IndexOf(t, m_Vertices[o][j]) < 0)
+        {
+          m_Neighbours[o][j] = t;
+          break;
+        }
+      }
+    }
+  }
+
+  void
+  QueueFaces(int32_t t, std::vector<uint32_t> & queue) const
+  {
+    for (uint32_t i = 0; i < 4; ++i)
+    {
+      queue.push_back(static_cast<uint32_t>(4 * t) + i);
+    }
+  }
+
+  /** One flip that removes tetrahedron t, which is not positive (see Untangle); false when none applies. */
+  bool
+  UntangleOne(int32_t t, std::vector<uint32_t> & queue, DelaunayRepairStatistics & stats)
+  {
+    for (int i = 0; i < 4; ++i)
+    {
+      const int32_t u = m_Neighbours[t][i];
+      if (u < 0)
+      {
+        continue;
+      }
+      const int32_t d = m_Vertices[t][i], e = OppositeVertex(u, t);
+      const int32_t abc[3] = { m_Vertices[t][FaceIndex[i][0]],
+                               m_Vertices[t][FaceIndex[i][1]],
+                               m_Vertices[t][FaceIndex[i][2]] };
+      bool          allPositive = true;
+      for (int k = 0; k < 3 && allPositive; ++k)
+      {
+        allPositive = Orientation(abc[k], abc[(k + 1) % 3], e, d) == CGAL::POSITIVE;
+      }
+      if (allPositive)
+      {
+        Flip23(t, u, abc, d, e, queue);
+        ++stats.flips23;
+        return true;
+      }
+      for (int k = 0; k < 3; ++k)
+      {
+        const int32_t x = abc[k], y = abc[(k + 1) % 3], z = abc[(k + 2) % 3];
+        const int32_t w = m_Neighbours[t][IndexOf(t, z)];
+        if (w >= 0 && w == m_Neighbours[u][IndexOf(u, z)] && IndexOf(w, d) >= 0 && IndexOf(w, e) >= 0 &&
+            Flip32(t, u, w, x, y, z, d, e, queue))
+        {
+          ++stats.flips32;
+          return true;
+        }
+      }
+    }
+    return false;
+  }
+
+  /** Tetrahedra (a, b, c, d) and (a, b, c, e) -> (a, b, e, d), (b, c, e, d), (c, a, e, d) around the edge de. */
+  void
+  Flip23(int32_t t, int32_t u, const int32_t * abc, int32_t d, int32_t e, std::vector<uint32_t> & queue)
+  {
+    const int32_t a = abc[0], b = abc[1], c = abc[2];
+    // outer neighbours, read before the old tetrahedra are replaced
+    const int32_t tA = Across(t, a), tB = Across(t, b), tC = Across(t, c);
+    const int32_t uA = Across(u, a), uB = Across(u, b), uC = Across(u, c);
+    Kill(t);
+    Kill(u);
+    const int32_t n1 = NewTetrahedron({ a, b, e, d }), n2 = NewTetrahedron({ b, c, e, d }),
+                  n3 = NewTetrahedron({ c, a, e, d });
+    Attach(n1, a, n2);
+    Attach(n1, b, n3);
+    Attach(n1, e, tC);
+    Attach(n1, d, uC);
+    Attach(n2, b, n3);
+    Attach(n2, c, n1);
+    Attach(n2, e, tA);
+    Attach(n2, d, uA);
+    Attach(n3, c, n1);
+    Attach(n3, a, n2);
+    Attach(n3, e, tB);
+    Attach(n3, d, uB);
+    QueueFaces(n1, queue);
+    QueueFaces(n2, queue);
+    QueueFaces(n3, queue);
+  }
+
+  /** The tetrahedra around the edge xy, (x, y, z, d), (x, y, z, e) and (x, y, d, e) (w; -1 for a 2-2 flip on the
+   * box) -> (z, d, e, y) and (z, d, x, e); false (nothing changed) unless both are positively oriented. */
+  bool
+  Flip32(int32_t                 t,
+         int32_t                 u,
+         int32_t                 w,
+         int32_t                 x,
+         int32_t                 y,
+         int32_t                 z,
+         int32_t                 d,
+         int32_t                 e,
+         std::vector<uint32_t> & queue)
+  {
+    if (Orientation(z, d, e, y) != CGAL::POSITIVE || Orientation(z, d, x, e) != CGAL::POSITIVE)
+    {
+      return false;
+    }
+    const int32_t tX = Across(t, x), tY = Across(t, y), uX = Across(u, x), uY = Across(u, y);
+    const int32_t wX = Across(w, x), wY = Across(w, y);
+    Kill(t);
+    Kill(u);
+    if (w >= 0)
+    {
+      Kill(w);
+    }
+    const int32_t n1 = NewTetrahedron({ z, d, e, y }), n2 = NewTetrahedron({ z, d, x, e });
+    Attach(n1, z, wX);
+    Attach(n1, d, uX);
+    Attach(n1, e, tX);
+    Attach(n1, y, n2);
+    Attach(n2, z, wY);
+    Attach(n2, d, uY);
+    Attach(n2, e, tY);
+    Attach(n2, x, n1);
+    QueueFaces(n1, queue);
+    QueueFaces(n2, queue);
+    return true;
+  }
+
+  const std::vector<Point> &          m_Points;
+  std::vector<std::array<int32_t, 4>> m_Vertices;
+  std::vector<std::array<int32_t, 4>> m_Neighbours;
+  std::vector<uint8_t>                m_Dead;
+  std::vector<uint8_t>                m_Created;
+  std::vector<int32_t>                m_Free;
+};
 } // namespace
 
 double
@@ -794,15 +1300,190 @@ BlockDelaunay3D(const std::vector<double> &           xyz,
          BlockDelaunay(xyz, unique, lo, hi, threader, marginFactor, tetrahedra, statistics);
 }
 
-size_t
-NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
-                        const std::vector<uint8_t> &          freeAxes,
-                        double                                maximumStep,
-                        std::vector<std::array<int32_t, 4>> & tetrahedra,
-                        double                                minimumShape,
-                        unsigned int                          maximumRounds,
-                        MultiThreaderBase *                   threader)
+bool
+RepairDelaunay3D(const std::vector<double> &                 xyz,
+                 const std::vector<std::array<int32_t, 4>> & previous,
+                 std::vector<std::array<int32_t, 4>> &       tetrahedra,
+                 MultiThreaderBase *                         threader,
+                 DelaunayRepairStatistics *                  statistics)
 {
+  DelaunayRepairStatistics   unused;
+  DelaunayRepairStatistics & stats = statistics ? *statistics : unused;
+  stats = DelaunayRepairStatistics{};
+  tetrahedra.clear();
+  const size_t n = xyz.size() / 3;
+  if (previous.empty() || n < 4 || n >= (size_t{ 1 } << 21))
+  {
+    return false;
+  }
+  // every node a vertex (no node merged, none left out: the Delaunay tetrahedralization uses them all)
+  std::vector<uint8_t> used(n, 0);
+  for (const auto & t : previous)
+  {
+    for (const int32_t v : t)
+    {
+      if (v < 0 || static_cast<size_t>(v) >= n)
+      {
+        return false;
+      }
+      used[v] = 1;
+    }
+  }
+  if (std::find(used.begin(), used.end(), uint8_t{ 0 }) != used.end())
+  {
+    return false;
+  }
+  double lo[3], hi[3];
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    lo[k] = hi[k] = xyz[k];
+  }
+  std::vector<BlockKernel::Point_3> points(n);
+  for (size_t i = 0; i < n; ++i)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      lo[k] = std::min(lo[k], xyz[3 * i + k]);
+      hi[k] = std::max(hi[k], xyz[3 * i + k]);
+    }
+    points[i] = BlockKernel::Point_3(xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]);
+  }
+  FlipRepair   repair(points, previous);
+  const size_t nt = previous.size();
+  if (!repair.Link(n))
+  {
+    return false;
+  }
+  // a tiling of the box: positive tetrahedra whose free faces lie on the box and whose volumes sum to the box's
+  // (the winding number of the boundary is then 1 everywhere inside: every point is covered once)
+  const size_t                       nChunks = std::max<size_t>(1, std::min<size_t>(64, nt / 256));
+  std::vector<uint8_t>               positive(nt, 0);
+  std::vector<std::vector<int32_t>>  tangled(nChunks);
+  std::vector<double>                sixVolume(nChunks, 0.0);
+  std::vector<uint8_t>               onBox(nChunks, 1);
+  std::vector<std::vector<uint32_t>> bad(nChunks);
+  const auto &                       v = repair.Vertices();
+  const auto &                       nb = repair.Neighbours();
+  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+    const size_t begin = nt * c / nChunks, end = nt * (c + 1) / nChunks;
+    repair.Orient(begin, end, positive, tangled[c]);
+    for (size_t t = begin; t < end; ++t)
+    {
+      sixVolume[c] += SixVolume(&xyz[3 * v[t][0]], &xyz[3 * v[t][1]], &xyz[3 * v[t][2]], &xyz[3 * v[t][3]]);
+      for (unsigned int i = 0; i < 4; ++i)
+      {
+        if (nb[t][i] >= 0)
+        {
+          continue;
+        }
+        bool onePlane = false;
+        for (unsigned int k = 0; k < 3 && !onePlane; ++k)
+        {
+          const double x = xyz[3 * v[t][(i + 1) % 4] + k];
+          onePlane =
+            (x == lo[k] || x == hi[k]) && xyz[3 * v[t][(i + 2) % 4] + k] == x && xyz[3 * v[t][(i + 3) % 4] + k] == x;
+        }
+        onBox[c] = onBox[c] && onePlane;
+      }
+    }
+    if (onBox[c])
+    {
+      repair.NonDelaunayFaces(begin, end, positive, bad[c]);
+    }
+  });
+  double               total = 0.0;
+  std::vector<int32_t> notPositive;
+  for (size_t c = 0; c < nChunks; ++c)
+  {
+    if (!onBox[c])
+    {
+      return false;
+    }
+    total += sixVolume[c];
+    notPositive.insert(notPositive.end(), tangled[c].begin(), tangled[c].end());
+  }
+  // the signed volumes (the boundary's) sum to the box's
+  const double box = 6.0 * (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2]);
+  if (!(box > 0.0) || !(std::abs(total - box) <= 1e-9 * box))
+  {
+    return false;
+  }
+  stats.tangledTetrahedra = notPositive.size();
+  std::vector<uint32_t> queue;
+  for (size_t c = 0; c < nChunks; ++c)
+  {
+    queue.insert(queue.end(), bad[c].begin(), bad[c].end());
+  }
+  stats.nonDelaunayFaces = queue.size();
+  const std::vector<uint32_t> initiallyBad = queue;
+  repair.PrepareFlips();
+  const size_t maximumFlips = 4 * nt + 1000;
+  if (!repair.Untangle(std::move(notPositive), queue, maximumFlips, stats) ||
+      !repair.Flip(std::move(queue), maximumFlips, stats))
+  {
+    return false;
+  }
+  // The faces to check again: those of the tetrahedra the flips made and the initially non-Delaunay faces of old
+  // tetrahedra that are still there; every other face lies between two old tetrahedra and was strictly Delaunay.
+  std::vector<uint32_t> check;
+  for (size_t t = 0; t < v.size(); ++t)
+  {
+    if (!repair.Dead(t) && repair.Created(t))
+    {
+      for (uint32_t i = 0; i < 4; ++i)
+      {
+        check.push_back(static_cast<uint32_t>(4 * t) + i);
+      }
+    }
+  }
+  for (const uint32_t f : initiallyBad)
+  {
+    if (!repair.Dead(f / 4) && !repair.Created(f / 4))
+    {
+      check.push_back(f);
+    }
+  }
+  if (!repair.StrictlyDelaunay(check))
+  {
+    return false;
+  }
+  // canonical and sorted: the old tetrahedra keep their order (previous is usually Delaunay3D's sorted list), the
+  // new ones are sorted and merged in
+  std::vector<std::array<int32_t, 4>> created;
+  tetrahedra.reserve(v.size());
+  for (size_t t = 0; t < v.size(); ++t)
+  {
+    if (!repair.Dead(t))
+    {
+      (repair.Created(t) ? created : tetrahedra).push_back(CanonicalTetrahedron(v[t]));
+    }
+  }
+  if (!std::is_sorted(tetrahedra.begin(), tetrahedra.end()))
+  {
+    std::sort(tetrahedra.begin(), tetrahedra.end());
+  }
+  std::sort(created.begin(), created.end());
+  const auto middle = static_cast<std::ptrdiff_t>(tetrahedra.size());
+  tetrahedra.insert(tetrahedra.end(), created.begin(), created.end());
+  std::inplace_merge(tetrahedra.begin(), tetrahedra.begin() + middle, tetrahedra.end());
+  return true;
+}
+
+size_t
+NonDegenerateDelaunay3D(std::vector<double> &                       xyz,
+                        const std::vector<uint8_t> &                freeAxes,
+                        double                                      maximumStep,
+                        std::vector<std::array<int32_t, 4>> &       tetrahedra,
+                        double                                      minimumShape,
+                        unsigned int                                maximumRounds,
+                        MultiThreaderBase *                         threader,
+                        const std::vector<std::array<int32_t, 4>> * warmStart,
+                        bool *                                      repaired)
+{
+  if (repaired)
+  {
+    *repaired = false;
+  }
   const size_t n = xyz.size() / 3;
   if (freeAxes.size() != n)
   {
@@ -813,7 +1494,16 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
   const std::vector<double>  original = xyz;
   for (unsigned int round = 0;; ++round)
   {
-    Delaunay3D(xyz, tetrahedra, threader);
+    // the first round from the warm start where it can vouch for the result (the same list as Delaunay3D's)
+    const bool fromWarmStart = round == 0 && warmStart && RepairDelaunay3D(xyz, *warmStart, tetrahedra, threader);
+    if (repaired && round == 0)
+    {
+      *repaired = fromWarmStart;
+    }
+    if (!fromWarmStart)
+    {
+      Delaunay3D(xyz, tetrahedra, threader);
+    }
     // the step each node of a flat tetrahedron takes this round (the smallest its flat tetrahedra ask for)
     std::vector<double> step(n, 0.0);
     size_t              flat = 0;

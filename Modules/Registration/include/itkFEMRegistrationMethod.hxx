@@ -404,8 +404,13 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
       t0 = Clock::now();
       const dmr::LabelSummary summary =
         dmr::SummarizeLabels<D>(grid, m_Labels->GetBufferPointer(), m_NumberOfNodes, threader);
-      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
-        grid, summary, m_CVTFilter->GetCore().GetCentroids().data(), dmr::DefaultSnapToBoxEdges, nullptr, threader);
+      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(grid,
+                                                   summary,
+                                                   m_CVTFilter->GetCore().GetCentroids().data(),
+                                                   dmr::DefaultSnapToBoxEdges,
+                                                   nullptr,
+                                                   threader,
+                                                   &m_TetrahedraWarmStart);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -524,6 +529,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
   m_Labels = nullptr;
+  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
 
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
@@ -565,6 +571,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetGPUOrderSolve(m_GPUOrderSolve);
   m_Solver->SetMultiThreader(this->GetMultiThreader());
   m_Labels = nullptr;
+  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
   m_InverseDisplacementField = nullptr;
 
   m_History.clear();
@@ -1145,8 +1152,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       dmr::ThrowOnError(cvt.GetCells(masses, centroids), "CVT sites");
       dmr::ThrowOnError(summarizer.Summarize(D, grid.size.data(), cvt.DeviceLabels(), m_NumberOfNodes, summary),
                         "label summary");
-      m_DynamicSimplexMesh =
-        dmr::BuildDualMesh<D>(grid, summary, centroids.data(), dmr::DefaultSnapToBoxEdges, nullptr, threader);
+      m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
+        grid, summary, centroids.data(), dmr::DefaultSnapToBoxEdges, nullptr, threader, &m_TetrahedraWarmStart);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -1306,6 +1313,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
   m_Labels = nullptr;
+  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
