@@ -644,8 +644,9 @@ TEST(Delaunay3D, RepairFromMovedNodesGivesDelaunay3DsList)
   EXPECT_GT(flippedOnBox, 0u);
 }
 
-/** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are,
- * and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's CGAL run decides there). */
+/** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are (or
+ * are not consistently oriented), and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's
+ * CGAL run decides there). */
 TEST(Delaunay3D, RepairRefusesWhatItCannotVouchFor)
 {
   const double side[3] = { 300.0, 260.0, 180.0 };
@@ -669,6 +670,9 @@ TEST(Delaunay3D, RepairRefusesWhatItCannotVouchFor)
   bad = reference;
   bad.push_back(reference.front());
   expectRefused(xyz, bad, "a tetrahedron twice");
+  bad = reference;
+  std::swap(bad[7][2], bad[7][3]);
+  expectRefused(xyz, bad, "a tetrahedron reversed (on the same side of a face as its neighbour)");
   // one more node, in no tetrahedron
   std::vector<double> more = xyz;
   more.insert(more.end(), { 0.5 * side[0], 0.5 * side[1], 0.5 * side[2] });

@@ -739,7 +739,8 @@ public:
   }
 
   /** Neighbours from matching faces (their sorted node triples, in three counting-sort passes over the node
-   * indices): false unless every face is held by one or two tetrahedra. */
+   * indices): false unless every face is held by one or two tetrahedra that give it opposite orientations (as in a
+   * tetrahedralization whose tetrahedra are all positive). */
   bool
   Link(size_t numberOfNodes)
   {
@@ -785,6 +786,10 @@ public:
       if (e - k == 2)
       {
         const uint32_t a = order[k], b = order[k + 1];
+        if (!OppositelyOriented(a, b))
+        {
+          return false; // the two tetrahedra would lie on the same side of their face once both are positive
+        }
         m_Neighbours[a / 4][a % 4] = static_cast<int32_t>(b / 4);
         m_Neighbours[b / 4][b % 4] = static_cast<int32_t>(a / 4);
       }
@@ -1035,6 +1040,26 @@ private:
       }
     }
     return -1;
+  }
+
+  /** Whether faces a and b (tetrahedron x 4 + face) of two tetrahedra, the same three nodes, are ordered oppositely
+   * (FaceIndex order: the tetrahedra, if positive, lie on the two sides of the face). */
+  bool
+  OppositelyOriented(uint32_t a, uint32_t b) const
+  {
+    const auto & p = FaceIndex[a % 4];
+    const auto & q = FaceIndex[b % 4];
+    const auto & tp = m_Vertices[a / 4];
+    const auto & tq = m_Vertices[b / 4];
+    for (int r = 0; r < 3; ++r)
+    {
+      // the same cyclic order (a rotation) is the same orientation
+      if (tq[q[0]] == tp[p[r]] && tq[q[1]] == tp[p[(r + 1) % 3]] && tq[q[2]] == tp[p[(r + 2) % 3]])
+      {
+        return false;
+      }
+    }
+    return true;
   }
 
   /** The vertex of u that is not in its face shared with t. */
