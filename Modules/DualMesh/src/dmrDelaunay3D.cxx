@@ -735,6 +735,8 @@ public:
   FlipRepair(const std::vector<Point> & points, std::vector<std::array<int32_t, 4>> tetrahedra)
     : m_Points(points)
     , m_Vertices(std::move(tetrahedra))
+    , m_Dead(m_Vertices.size(), 0)
+    , m_Created(m_Vertices.size(), 0)
   {
   }
 
@@ -906,26 +908,10 @@ public:
       {
         return false;
       }
-      // the face (a, b, c) with d on its positive side, e on its negative side; where the line de meets its plane
-      const int32_t abc[3] = { m_Vertices[t][FaceIndex[i][0]],
-                               m_Vertices[t][FaceIndex[i][1]],
-                               m_Vertices[t][FaceIndex[i][2]] };
-      CGAL::Sign    side[3];
-      int           negative = 0, zero = 0, edge = -1;
-      for (int k = 0; k < 3; ++k)
-      {
-        side[k] = Orientation(abc[k], abc[(k + 1) % 3], e, d);
-        if (side[k] == CGAL::NEGATIVE)
-        {
-          ++negative;
-          edge = k;
-        }
-        else if (side[k] == CGAL::ZERO)
-        {
-          ++zero;
-          edge = k;
-        }
-      }
+      int32_t abc[3];
+      FaceNodes(t, i, abc);
+      int negative = 0, zero = 0, edge = -1;
+      LineThroughFace(abc, d, e, negative, zero, edge);
       if (negative == 0 && zero == 0)
       {
         Flip23(t, u, abc, d, e, queue);
@@ -937,11 +923,10 @@ public:
         continue; // the line de passes beyond a vertex of the face: not flippable from here
       }
       const int32_t x = abc[edge], y = abc[(edge + 1) % 3], z = abc[(edge + 2) % 3];
-      const int32_t w1 = m_Neighbours[t][IndexOf(t, z)], w2 = m_Neighbours[u][IndexOf(u, z)];
       if (zero == 1)
       {
         // d, e, x, y coplanar: a 2-2 flip when that plane is the box's (both faces on it), else a 4-4 flip (not done)
-        if (w1 >= 0 || w2 >= 0)
+        if (m_Neighbours[t][IndexOf(t, z)] >= 0 || m_Neighbours[u][IndexOf(u, z)] >= 0)
         {
           return false;
         }
@@ -953,11 +938,8 @@ public:
         continue;
       }
       // the line de passes beyond the edge xy: a 3-2 flip when xy has exactly three tetrahedra around it
-      if (w1 < 0 || w1 != w2 || IndexOf(w1, d) < 0 || IndexOf(w1, e) < 0)
-      {
-        continue;
-      }
-      if (Flip32(t, u, w1, x, y, z, d, e, queue))
+      const int32_t w = ThirdAroundEdge(t, u, z, d, e);
+      if (w >= 0 && Flip32(t, u, w, x, y, z, d, e, queue))
       {
         ++stats.flips32;
       }
@@ -985,13 +967,6 @@ public:
   {
     return m_Created[t] != 0;
   }
-  void
-  PrepareFlips()
-  {
-    m_Dead.assign(m_Vertices.size(), 0);
-    m_Created.assign(m_Vertices.size(), 0);
-  }
-
   /** Whether each of the faces (tetrahedron x 4 + face) is on the box or strictly locally Delaunay. */
   bool
   StrictlyDelaunay(const std::vector<uint32_t> & faces) const
@@ -1060,6 +1035,40 @@ private:
       }
     }
     return true;
+  }
+
+  /** The nodes of face i of tetrahedron t in FaceIndex order (the tetrahedron's node i on their positive side). */
+  void
+  FaceNodes(int32_t t, int i, int32_t * abc) const
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      abc[k] = m_Vertices[t][FaceIndex[i][k]];
+    }
+  }
+
+  /** Where the line from d (on the positive side of face abc) to e meets the face's plane: for each edge
+   * (abc[k], abc[k + 1]), the orientation of (edge, e, d) is positive when it passes on the face's side of it. Counts
+   * the negative and zero ones; edge: the last such k. All positive: the line crosses the face's interior. */
+  void
+  LineThroughFace(const int32_t * abc, int32_t d, int32_t e, int & negative, int & zero, int & edge) const
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      const CGAL::Orientation side = Orientation(abc[k], abc[(k + 1) % 3], e, d);
+      negative += side == CGAL::NEGATIVE ? 1 : 0;
+      zero += side == CGAL::ZERO ? 1 : 0;
+      edge = side != CGAL::POSITIVE ? k : edge;
+    }
+  }
+
+  /** The tetrahedron (x, y, d, e) that closes the ring of three around the edge xy of the face (x, y, z) that t (with
+   * d) and u (with e) share: the neighbour of both across their faces opposite z, holding d and e; -1 if none. */
+  int32_t
+  ThirdAroundEdge(int32_t t, int32_t u, int32_t z, int32_t d, int32_t e) const
+  {
+    const int32_t w = m_Neighbours[t][IndexOf(t, z)];
+    return w >= 0 && w == m_Neighbours[u][IndexOf(u, z)] && IndexOf(w, d) >= 0 && IndexOf(w, e) >= 0 ? w : -1;
   }
 
   /** The vertex of u that is not in its face shared with t. */
@@ -1151,15 +1160,11 @@ private:
         continue;
       }
       const int32_t d = m_Vertices[t][i], e = OppositeVertex(u, t);
-      const int32_t abc[3] = { m_Vertices[t][FaceIndex[i][0]],
-                               m_Vertices[t][FaceIndex[i][1]],
-                               m_Vertices[t][FaceIndex[i][2]] };
-      bool          allPositive = true;
-      for (int k = 0; k < 3 && allPositive; ++k)
-      {
-        allPositive = Orientation(abc[k], abc[(k + 1) % 3], e, d) == CGAL::POSITIVE;
-      }
-      if (allPositive)
+      int32_t       abc[3];
+      FaceNodes(t, i, abc);
+      int negative = 0, zero = 0, edge = -1;
+      LineThroughFace(abc, d, e, negative, zero, edge);
+      if (negative == 0 && zero == 0)
       {
         Flip23(t, u, abc, d, e, queue);
         ++stats.flips23;
@@ -1168,9 +1173,8 @@ private:
       for (int k = 0; k < 3; ++k)
       {
         const int32_t x = abc[k], y = abc[(k + 1) % 3], z = abc[(k + 2) % 3];
-        const int32_t w = m_Neighbours[t][IndexOf(t, z)];
-        if (w >= 0 && w == m_Neighbours[u][IndexOf(u, z)] && IndexOf(w, d) >= 0 && IndexOf(w, e) >= 0 &&
-            Flip32(t, u, w, x, y, z, d, e, queue))
+        const int32_t w = ThirdAroundEdge(t, u, z, d, e);
+        if (w >= 0 && Flip32(t, u, w, x, y, z, d, e, queue))
         {
           ++stats.flips32;
           return true;
@@ -1441,8 +1445,7 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
   }
   stats.nonDelaunayFaces = queue.size();
   const std::vector<uint32_t> initiallyBad = queue;
-  repair.PrepareFlips();
-  const size_t maximumFlips = 4 * nt + 1000;
+  const size_t                maximumFlips = 4 * nt + 1000;
   if (!repair.Untangle(std::move(notPositive), queue, maximumFlips, stats) ||
       !repair.Flip(std::move(queue), maximumFlips, stats))
   {
