@@ -644,6 +644,130 @@ TEST(Delaunay3D, RepairFromMovedNodesGivesDelaunay3DsList)
   EXPECT_GT(flippedOnBox, 0u);
 }
 
+namespace
+{
+/** Which of the box's planes a node lies on (as a bit set). */
+unsigned int
+PlanesOf(const double * x, const double (&side)[3])
+{
+  unsigned int planes = 0;
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    planes |= (x[k] == 0.0 ? 1u : 0u) << (2 * k);
+    planes |= (x[k] == side[k] ? 1u : 0u) << (2 * k + 1);
+  }
+  return planes;
+}
+
+/** The dual mesh's big moves: `count` inner nodes within h of a box face snap onto it, `count` face nodes leave
+ * their face for the inside (0.5-1 h in), and `count` inner nodes jump by 1-2 h (staying inside). */
+std::vector<double>
+JumpNodes(std::vector<double> xyz, const double (&side)[3], double h, int count, uint32_t seed)
+{
+  std::mt19937                           rng(seed);
+  std::uniform_int_distribution<size_t>  pick(8, xyz.size() / 3 - 1);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int                                    snapped = 0, left = 0, jumped = 0;
+  for (int attempt = 0; attempt < 100000 && (snapped < count || left < count || jumped < count); ++attempt)
+  {
+    double *           x = &xyz[3 * pick(rng)];
+    const unsigned int planes = PlanesOf(x, side);
+    if (planes == 0)
+    {
+      // inner: snap to the nearest face when within h, else (sometimes) jump
+      unsigned int nearest = 0;
+      double       distance = side[0];
+      for (unsigned int k = 0; k < 3; ++k)
+      {
+        for (const double plane : { 0.0, side[k] })
+        {
+          if (std::abs(x[k] - plane) < distance)
+          {
+            distance = std::abs(x[k] - plane);
+            nearest = 2 * k + (plane == 0.0 ? 0 : 1);
+          }
+        }
+      }
+      if (distance < h && snapped < count)
+      {
+        x[nearest / 2] = nearest % 2 ? side[nearest / 2] : 0.0;
+        ++snapped;
+      }
+      else if (distance >= 2.5 * h && jumped < count)
+      {
+        for (unsigned int k = 0; k < 3; ++k)
+        {
+          x[k] += h * (1.0 + std::abs(u(rng))) * (u(rng) < 0.0 ? -1.0 : 1.0) / std::sqrt(3.0);
+        }
+        ++jumped;
+      }
+    }
+    else if ((planes & (planes - 1)) == 0 && left < count)
+    {
+      // on one face: into the inside
+      unsigned int k = 0;
+      while (!((planes >> (2 * k)) & 3u))
+      {
+        ++k;
+      }
+      const double depth = h * (0.75 + 0.25 * u(rng));
+      x[k] = x[k] == 0.0 ? depth : side[k] - depth;
+      ++left;
+    }
+  }
+  return xyz;
+}
+} // namespace
+
+/** The dual mesh snaps a cell's node to the box border when the cell reaches it and takes it back when it leaves;
+ * nodes also jump where cells change much. With the earlier positions, RepairDelaunay3D moves such nodes by removal
+ * and insertion (and sets aside the nodes of tetrahedra it cannot untangle), and its result is still Delaunay3D's list;
+ * without them it must refuse a node that left the box. */
+TEST(Delaunay3D, RepairMovesNodesOntoAndOffTheBoxFromTheirEarlierPositions)
+{
+  const double side[3] = { 300.0, 260.0, 180.0 };
+  const double h = 16.0;
+  auto         xyz = DualMeshLikeNodes(side[0], side[1], side[2], h, false, false, 13u);
+  Tetrahedra   previous;
+  itk::dmr::Delaunay3D(xyz, previous, Threader(2));
+  size_t repaired = 0, removals = 0, secondRounds = 0;
+  for (uint32_t move = 0; move < 12; ++move)
+  {
+    const auto earlier = xyz;
+    xyz = JumpNodes(MoveNodes(xyz, side, 0.01 * h, 300 + move), side, h, 1 + move % 3, 400 + move);
+    size_t changed = 0;
+    for (size_t i = 0; i < xyz.size() / 3; ++i)
+    {
+      changed += PlanesOf(&xyz[3 * i], side) != PlanesOf(&earlier[3 * i], side) ? 1 : 0;
+    }
+    ASSERT_GE(changed, 2u) << "move " << move;
+    Tetrahedra reference, t;
+    itk::dmr::Delaunay3D(xyz, reference, Threader(2));
+    EXPECT_FALSE(itk::dmr::RepairDelaunay3D(xyz, previous, t, Threader(2))) << "move " << move;
+    for (const unsigned int workUnits : { 1u, 2u, 5u })
+    {
+      itk::dmr::DelaunayRepairStatistics statistics;
+      if (itk::dmr::RepairDelaunay3D(xyz, previous, t, Threader(workUnits), &statistics, &earlier))
+      {
+        ASSERT_EQ(t, reference) << "move " << move << ", " << workUnits << " work units";
+        EXPECT_GE(statistics.movedByRemoval, changed) << "move " << move;
+        repaired += workUnits == 1 ? 1 : 0;
+        removals += workUnits == 1 ? statistics.movedByRemoval : 0;
+        secondRounds += workUnits == 1 && statistics.rounds > 1 ? 1 : 0;
+      }
+      else
+      {
+        EXPECT_TRUE(t.empty());
+      }
+    }
+    previous = reference;
+  }
+  std::cout << "repaired " << repaired << " of 12 moves; " << removals << " nodes moved by removal and insertion; "
+            << secondRounds << " moves needed a second untangling round" << std::endl;
+  EXPECT_GE(repaired, 9u);
+  EXPECT_GT(secondRounds, 0u);
+}
+
 /** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are (or
  * are not consistently oriented), and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's
  * CGAL run decides there). */
@@ -689,6 +813,22 @@ TEST(Delaunay3D, RepairRefusesWhatItCannotVouchFor)
     }
   }
   expectRefused(off, reference, "a face node off its face");
+  // earlier positions in another box (a corner moved): not where these tetrahedra were Delaunay
+  std::vector<double> otherBox = xyz;
+  for (size_t i = 0; i < otherBox.size(); i += 3)
+  {
+    otherBox[i] = otherBox[i] == side[0] ? side[0] + 1.0 : otherBox[i];
+  }
+  Tetrahedra out{ { 0, 1, 2, 3 } };
+  EXPECT_FALSE(itk::dmr::RepairDelaunay3D(off, reference, out, Threader(2), nullptr, &otherBox));
+  EXPECT_TRUE(out.empty());
+  // with the right ones, the face node that left its face is moved by removal and insertion
+  itk::dmr::DelaunayRepairStatistics statistics;
+  ASSERT_TRUE(itk::dmr::RepairDelaunay3D(off, reference, out, Threader(2), &statistics, &xyz));
+  Tetrahedra offReference;
+  itk::dmr::Delaunay3D(off, offReference, Threader(2));
+  EXPECT_EQ(out, offReference);
+  EXPECT_EQ(statistics.movedByRemoval, 1u);
   // a lattice: cospherical nodes everywhere
   std::vector<double> lattice;
   for (int k = 0; k < 6; ++k)
@@ -723,9 +863,9 @@ TEST(Delaunay3D, NudgingFromAWarmStartGivesTheSameResult)
       }
     }
   }
-  std::vector<double> warmNodes = start;
-  Tetrahedra          warm;
-  itk::dmr::NonDegenerateDelaunay3D(warmNodes, freeAxes, 0.25, warm, flatShape, rounds, Threader(2));
+  itk::dmr::DelaunayWarmStart warm;
+  warm.nodes = start;
+  itk::dmr::NonDegenerateDelaunay3D(warm.nodes, freeAxes, 0.25, warm.tetrahedra, flatShape, rounds, Threader(2));
   size_t repairedCount = 0;
   for (uint32_t move = 0; move < 6; ++move)
   {
@@ -741,7 +881,8 @@ TEST(Delaunay3D, NudgingFromAWarmStartGivesTheSameResult)
     EXPECT_EQ(a, b) << "move " << move;
     EXPECT_EQ(nudgedWarm, nudgedFresh);
     repairedCount += repaired ? 1 : 0;
-    warm = fromWarm;
+    warm.tetrahedra = fromWarm;
+    warm.nodes = a;
   }
   EXPECT_GT(repairedCount, 0u) << "the warm start was never used";
   // near-flat tetrahedra (a lattice with tiny noise), warm-started from the tetrahedralization of a noisier one: the
@@ -749,12 +890,22 @@ TEST(Delaunay3D, NudgingFromAWarmStartGivesTheSameResult)
   std::vector<double>  noisy = NoisyLattice(1e-2), a = NoisyLattice(1e-13), b = a;
   std::vector<uint8_t> latticeAxes(a.size() / 3, 7u);
   std::fill(latticeAxes.begin(), latticeAxes.begin() + 8, uint8_t{ 0 });
-  Tetrahedra noisyTetrahedra, fromWarm, fresh;
-  itk::dmr::Delaunay3D(noisy, noisyTetrahedra, Threader(2));
+  itk::dmr::DelaunayWarmStart noisyWarm;
+  noisyWarm.nodes = noisy;
+  itk::dmr::Delaunay3D(noisy, noisyWarm.tetrahedra, Threader(2));
+  Tetrahedra   fromWarm, fresh;
   const size_t nudged =
-    itk::dmr::NonDegenerateDelaunay3D(a, latticeAxes, 0.05, fromWarm, flatShape, rounds, Threader(2), &noisyTetrahedra);
+    itk::dmr::NonDegenerateDelaunay3D(a, latticeAxes, 0.05, fromWarm, flatShape, rounds, Threader(2), &noisyWarm);
   EXPECT_GT(nudged, 0u);
   EXPECT_EQ(nudged, itk::dmr::NonDegenerateDelaunay3D(b, latticeAxes, 0.05, fresh, flatShape, rounds, Threader(2)));
+  EXPECT_EQ(a, b);
+  EXPECT_EQ(fromWarm, fresh);
+  // the same without the earlier positions
+  a = NoisyLattice(1e-13);
+  noisyWarm.nodes.clear();
+  EXPECT_EQ(
+    nudged,
+    itk::dmr::NonDegenerateDelaunay3D(a, latticeAxes, 0.05, fromWarm, flatShape, rounds, Threader(2), &noisyWarm));
   EXPECT_EQ(a, b);
   EXPECT_EQ(fromWarm, fresh);
 }

@@ -99,7 +99,29 @@ struct DelaunayRepairStatistics
   size_t nonDelaunayFaces{ 0 };  // faces of the others that the moved nodes left not strictly Delaunay
   size_t flips23{ 0 };
   size_t flips32{ 0 };
-  size_t flips22{ 0 }; // on a box face
+  size_t flips22{ 0 };        // on a box face
+  size_t movedByRemoval{ 0 }; // nodes moved by removal and insertion (see RepairDelaunay3D)
+  size_t rounds{ 0 };         // untangling rounds (more than one when it got stuck and nodes were set aside)
+};
+
+/** A tetrahedralization and the node positions it is the Delaunay tetrahedralization of: the warm start of
+ * NonDegenerateDelaunay3D (and BuildDualMesh) for nodes that have moved since. */
+struct DelaunayWarmStart
+{
+  std::vector<double>                 nodes; // x, y, z per node
+  std::vector<std::array<int32_t, 4>> tetrahedra;
+
+  bool
+  empty() const
+  {
+    return tetrahedra.empty();
+  }
+  void
+  clear()
+  {
+    std::vector<double>().swap(nodes);
+    std::vector<std::array<int32_t, 4>>().swap(tetrahedra);
+  }
 };
 
 /** Delaunay3D of nodes that moved since an earlier tetrahedralization of them (previous: node indices, e.g. the last
@@ -112,13 +134,20 @@ struct DelaunayRepairStatistics
  * exactly (canonical tetrahedra, sorted), whatever the threads. Returns false, with no tetrahedra, when it cannot
  * vouch for that: previous does not tile the box with the nodes as they are now, a flip would need a coplanar
  * configuration inside the box, flips get stuck, or cospherical nodes leave a choice (Delaunay3D then decides by
- * CGAL's symbolic perturbation). The caller then runs Delaunay3D. threader: the work units of the checks. */
+ * CGAL's symbolic perturbation). The caller then runs Delaunay3D. threader: the work units of the checks.
+ * previousXyz (optional; same number of nodes): where the nodes were when previous was their Delaunay
+ * tetrahedralization. With it, a node that moved onto or off a box plane (the dual mesh snaps a cell's node to the
+ * box border when the cell reaches it), and the moved nodes of tetrahedra that the flips cannot untangle, start where
+ * they were; once the others are repaired, each of them is removed (its tetrahedra replaced by the Delaunay
+ * tetrahedra of its neighbours that fill the same region) and inserted where it is now (Bowyer-Watson). The same
+ * final check applies, so the result is still exactly Delaunay3D's list or false. */
 DynamicMeshRegistration_EXPORT bool
 RepairDelaunay3D(const std::vector<double> &                 xyz,
                  const std::vector<std::array<int32_t, 4>> & previous,
                  std::vector<std::array<int32_t, 4>> &       tetrahedra,
                  MultiThreaderBase *                         threader = nullptr,
-                 DelaunayRepairStatistics *                  statistics = nullptr);
+                 DelaunayRepairStatistics *                  statistics = nullptr,
+                 const std::vector<double> *                 previousXyz = nullptr);
 
 /** Threshold of NonDegenerateDelaunay3D as DualMeshFilter uses it: a tetrahedron with shape below 1e-6 counts as flat.
  * Its four nodes are then coplanar to within a millionth of its size: its volume is still far above double round-off
@@ -141,18 +170,19 @@ TetrahedronShape(const double * a, const double * b, const double * c, const dou
  * No node is added (no Steiner points). xyz is updated in place; returns the number of nodes that ended up off their
  * input position (0 for generic input, which is then exactly Delaunay3D). Throws an itk::ExceptionObject when a flat
  * tetrahedron remains after maximumRounds rounds or consists of pinned nodes only.
- * warmStart (optional): an earlier tetrahedralization of these nodes, tried first through RepairDelaunay3D; the result
- * does not depend on it. repaired (optional): set to whether the first round's tetrahedralization came from it. */
+ * warmStart (optional): an earlier tetrahedralization of these nodes and where they were then, tried first through
+ * RepairDelaunay3D; the result does not depend on it. repaired (optional): set to whether the first round's
+ * tetrahedralization came from it. */
 DynamicMeshRegistration_EXPORT size_t
-NonDegenerateDelaunay3D(std::vector<double> &                       xyz,
-                        const std::vector<uint8_t> &                freeAxes,
-                        double                                      maximumStep,
-                        std::vector<std::array<int32_t, 4>> &       tetrahedra,
-                        double                                      minimumShape,
-                        unsigned int                                maximumRounds,
-                        MultiThreaderBase *                         threader = nullptr,
-                        const std::vector<std::array<int32_t, 4>> * warmStart = nullptr,
-                        bool *                                      repaired = nullptr);
+NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
+                        const std::vector<uint8_t> &          freeAxes,
+                        double                                maximumStep,
+                        std::vector<std::array<int32_t, 4>> & tetrahedra,
+                        double                                minimumShape,
+                        unsigned int                          maximumRounds,
+                        MultiThreaderBase *                   threader = nullptr,
+                        const DelaunayWarmStart *             warmStart = nullptr,
+                        bool *                                repaired = nullptr);
 } // namespace dmr
 } // namespace itk
 

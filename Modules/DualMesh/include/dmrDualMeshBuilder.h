@@ -344,20 +344,20 @@ constexpr bool DefaultSnapToBoxEdges = true;
  * sitesGridFrame: D coordinates per cell (the site of cell c at D c, grid frame), used for the inner cells; nullptr
  * uses the cells' unweighted centroids. snapToBoxEdges: 3D edge snapping (DualMeshFilter::SetSnapToBoxEdges).
  * threader: the work units of the 3D Delaunay tetrahedralization (Delaunay3D; nullptr: serial); the mesh does not
- * depend on it. tetrahedraWarmStart (3D, optional, in and out): the tetrahedra (node = cell indices, before
- * compaction) of an earlier call, e.g. the last iteration's; when the nodes moved little, RepairDelaunay3D flips them
- * into this call's tetrahedralization instead of a new one, with the same result. Replaced by this call's.
+ * depend on it. warmStart (3D, optional, in and out): the tetrahedra (node = cell indices, before compaction) and
+ * node positions of an earlier call, e.g. the last iteration's; when the nodes moved little, RepairDelaunay3D turns
+ * them into this call's tetrahedralization instead of a new one, with the same result. Replaced by this call's.
  * Throws an itk::ExceptionObject for a cell without voxels, a summary of another grid, a 3D grid thinner than 2
  * voxels, or a mesh that does not tile the box. */
 template <unsigned int D>
 SimplexMesh<D>
-BuildDualMesh(const Grid<D> &                       grid,
-              const LabelSummary &                  summary,
-              const double *                        sitesGridFrame,
-              bool                                  snapToBoxEdges = DefaultSnapToBoxEdges,
-              DualMeshStatistics *                  statistics = nullptr,
-              MultiThreaderBase *                   threader = nullptr,
-              std::vector<std::array<int32_t, 4>> * tetrahedraWarmStart = nullptr)
+BuildDualMesh(const Grid<D> &      grid,
+              const LabelSummary & summary,
+              const double *       sitesGridFrame,
+              bool                 snapToBoxEdges = DefaultSnapToBoxEdges,
+              DualMeshStatistics * statistics = nullptr,
+              MultiThreaderBase *  threader = nullptr,
+              DelaunayWarmStart *  warmStart = nullptr)
 {
   static_assert(D == 2 || D == 3, "the dual mesh is defined in 2D (triangles) and 3D (tetrahedra)");
   if (summary.dimension != D)
@@ -531,7 +531,7 @@ BuildDualMesh(const Grid<D> &                       grid,
     {
       minimumSpacing = std::min(minimumSpacing, grid.spacing[k]);
     }
-    const bool warm = tetrahedraWarmStart && !tetrahedraWarmStart->empty();
+    const bool warm = warmStart && !warmStart->empty();
     stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(nodes,
                                                            freeAxes,
                                                            0.25 * minimumSpacing,
@@ -539,11 +539,12 @@ BuildDualMesh(const Grid<D> &                       grid,
                                                            DefaultMinimumTetrahedronShape,
                                                            12,
                                                            threader,
-                                                           warm ? tetrahedraWarmStart : nullptr,
+                                                           warm ? warmStart : nullptr,
                                                            &stats.repairedFromWarmStart);
-    if (tetrahedraWarmStart)
+    if (warmStart)
     {
-      *tetrahedraWarmStart = elements;
+      warmStart->tetrahedra = elements;
+      warmStart->nodes = nodes; // where NonDegenerateDelaunay3D left them
     }
     // how much of the CVT adjacency between inner cells the tetrahedralization holds (when asked for)
     for (size_t k = 0; statistics && k < summary.adjacentPairs.size(); ++k)

@@ -732,12 +732,38 @@ class FlipRepair
 public:
   using Point = BlockKernel::Point_3;
 
-  FlipRepair(const std::vector<Point> & points, std::vector<std::array<int32_t, 4>> tetrahedra)
+  FlipRepair(std::vector<Point> & points, std::vector<std::array<int32_t, 4>> tetrahedra)
     : m_Points(points)
     , m_Vertices(std::move(tetrahedra))
     , m_Dead(m_Vertices.size(), 0)
     , m_Created(m_Vertices.size(), 0)
   {
+  }
+
+  /** Keeps the linked tetrahedra (after Link) for Reset. */
+  void
+  Save()
+  {
+    m_SavedVertices = m_Vertices;
+    m_SavedNeighbours = m_Neighbours;
+  }
+
+  /** Back to the tetrahedra kept by Save, none dead or created. */
+  void
+  Reset()
+  {
+    m_Vertices = m_SavedVertices;
+    m_Neighbours = m_SavedNeighbours;
+    m_Dead.assign(m_Vertices.size(), 0);
+    m_Created.assign(m_Vertices.size(), 0);
+    m_Free.clear();
+  }
+
+  /** Moves node j (not a vertex of any tetrahedron while it moves: see RemoveNode and InsertNode). */
+  void
+  SetPoint(int32_t j, const Point & p)
+  {
+    m_Points[j] = p;
   }
 
   /** Neighbours from matching faces (their sorted node triples, in three counting-sort passes over the node
@@ -846,9 +872,9 @@ public:
   Untangle(std::vector<int32_t>       tangled,
            std::vector<uint32_t> &    queue,
            size_t                     maximumFlips,
-           DelaunayRepairStatistics & stats)
+           DelaunayRepairStatistics & stats,
+           std::vector<int32_t> &     stuck)
   {
-    std::vector<int32_t> stuck;
     while (!tangled.empty())
     {
       bool progress = false;
@@ -861,6 +887,7 @@ public:
         }
         if (stats.flips23 + stats.flips32 >= maximumFlips)
         {
+          stuck.push_back(t);
           return false;
         }
         if (UntangleOne(t, queue, stats))
@@ -878,6 +905,7 @@ public:
       }
       tangled.swap(stuck);
     }
+    stuck.clear();
     return true;
   }
 
@@ -947,6 +975,343 @@ public:
     return true;
   }
 
+  /** The box the tetrahedra tile (their free faces lie on its planes). */
+  void
+  SetBox(const double * lo, const double * hi)
+  {
+    std::copy(lo, lo + 3, m_Lo);
+    std::copy(hi, hi + 3, m_Hi);
+  }
+
+  /** Removes node j from a Delaunay tetrahedralization: its tetrahedra (the star) give way to the Delaunay tetrahedra
+   * of the star's other nodes that fill the same region, found from the star's outer faces (the link) by a flood fill
+   * in CGAL's tetrahedralization of those nodes that stops at the link and at the box. The filling must meet every
+   * link face once from j's side, consist of positive tetrahedra and have the star's volume; false otherwise (nothing
+   * changed). nearby: one of the new tetrahedra. */
+  bool
+  RemoveNode(int32_t j, std::vector<uint32_t> & queue, int32_t & nearby)
+  {
+    std::vector<int32_t> star;
+    if (!Star(j, star))
+    {
+      return false;
+    }
+    struct LinkFace
+    {
+      std::array<int32_t, 3> key; // sorted nodes
+      int32_t                outer;
+      int                    uses;
+    };
+    std::vector<LinkFace>                                 link;
+    std::vector<std::pair<BlockKernel::Point_3, int32_t>> nodes;
+    double                                                starVolume = 0.0;
+    for (const int32_t t : star)
+    {
+      const int              i = IndexOf(t, j);
+      std::array<int32_t, 3> key = { m_Vertices[t][(i + 1) % 4],
+                                     m_Vertices[t][(i + 2) % 4],
+                                     m_Vertices[t][(i + 3) % 4] };
+      std::sort(key.begin(), key.end());
+      link.push_back({ key, m_Neighbours[t][i], 0 });
+      for (const int32_t v : key)
+      {
+        if (std::none_of(nodes.begin(), nodes.end(), [v](const auto & n) { return n.second == v; }))
+        {
+          nodes.emplace_back(m_Points[v], v);
+        }
+      }
+      starVolume += SixVolumeOf(m_Vertices[t]);
+    }
+    std::sort(link.begin(), link.end(), [](const LinkFace & a, const LinkFace & b) { return a.key < b.key; });
+    if (nodes.size() < 4 || std::adjacent_find(link.begin(), link.end(), [](const LinkFace & a, const LinkFace & b) {
+                              return a.key == b.key;
+                            }) != link.end())
+    {
+      return false;
+    }
+    BlockTriangulation dt(nodes.begin(), nodes.end());
+    if (dt.dimension() != 3 || dt.number_of_vertices() != nodes.size())
+    {
+      return false;
+    }
+    std::vector<std::pair<int32_t, BlockTriangulation::Vertex_handle>> handles;
+    for (auto v = dt.finite_vertices_begin(); v != dt.finite_vertices_end(); ++v)
+    {
+      handles.emplace_back(v->info(), v);
+    }
+    std::sort(handles.begin(), handles.end(), [](const auto & a, const auto & b) { return a.first < b.first; });
+    const auto handleOf = [&](int32_t v) {
+      return std::lower_bound(handles.begin(), handles.end(), v, [](const auto & h, int32_t x) { return h.first < x; })
+        ->second;
+    };
+    const auto linkFaceOf = [&](const std::array<int32_t, 3> & key) -> LinkFace * {
+      auto it = std::lower_bound(
+        link.begin(), link.end(), key, [](const LinkFace & f, const std::array<int32_t, 3> & k) { return f.key < k; });
+      return it != link.end() && it->key == key ? &*it : nullptr;
+    };
+    for (auto c = dt.all_cells_begin(); c != dt.all_cells_end(); ++c)
+    {
+      c->info() = 0;
+    }
+    // seeds: the cell on j's side of each link face
+    std::vector<BlockTriangulation::Cell_handle> fill;
+    for (const LinkFace & f : link)
+    {
+      BlockTriangulation::Cell_handle c;
+      int                             i0 = 0, i1 = 0, i2 = 0;
+      if (!dt.is_facet(handleOf(f.key[0]), handleOf(f.key[1]), handleOf(f.key[2]), c, i0, i1, i2))
+      {
+        return false;
+      }
+      const int               k = 6 - i0 - i1 - i2;
+      const CGAL::Orientation side =
+        CGAL::orientation(m_Points[f.key[0]], m_Points[f.key[1]], m_Points[f.key[2]], m_Points[j]);
+      if (dt.is_infinite(c->vertex(k)) ||
+          CGAL::orientation(m_Points[f.key[0]], m_Points[f.key[1]], m_Points[f.key[2]], c->vertex(k)->point()) != side)
+      {
+        c = c->neighbor(k);
+      }
+      if (dt.is_infinite(c))
+      {
+        return false;
+      }
+      if (c->info() == 0)
+      {
+        c->info() = 1;
+        fill.push_back(c);
+      }
+    }
+    const size_t maximumFill = 8 * star.size() + 64;
+    for (size_t m = 0; m < fill.size(); ++m)
+    {
+      const auto c = fill[m];
+      for (int k = 0; k < 4; ++k)
+      {
+        std::array<int32_t, 3> key = { c->vertex((k + 1) % 4)->info(),
+                                       c->vertex((k + 2) % 4)->info(),
+                                       c->vertex((k + 3) % 4)->info() };
+        std::sort(key.begin(), key.end());
+        if (LinkFace * f = linkFaceOf(key))
+        {
+          ++f->uses;
+          continue;
+        }
+        const auto n = c->neighbor(k);
+        if (dt.is_infinite(n))
+        {
+          if (!OnOneBoxPlane(key))
+          {
+            return false;
+          }
+          continue;
+        }
+        if (n->info() == 0)
+        {
+          if (fill.size() == maximumFill)
+          {
+            return false;
+          }
+          n->info() = 1;
+          fill.push_back(n);
+        }
+      }
+    }
+    double                              fillVolume = 0.0;
+    std::vector<std::array<int32_t, 4>> tetrahedra(fill.size());
+    for (size_t m = 0; m < fill.size(); ++m)
+    {
+      for (int k = 0; k < 4; ++k)
+      {
+        tetrahedra[m][k] = fill[m]->vertex(k)->info();
+      }
+      if (Orientation(tetrahedra[m][0], tetrahedra[m][1], tetrahedra[m][2], tetrahedra[m][3]) != CGAL::POSITIVE)
+      {
+        return false;
+      }
+      fillVolume += SixVolumeOf(tetrahedra[m]);
+    }
+    if (std::any_of(link.begin(), link.end(), [](const LinkFace & f) { return f.uses != 1; }) ||
+        !(std::abs(fillVolume - starVolume) <= 1e-9 * starVolume))
+    {
+      return false;
+    }
+    // commit: the star out, the filling in, linked to each other, to the outer tetrahedra and to the box
+    for (const int32_t t : star)
+    {
+      Kill(t);
+    }
+    std::vector<int32_t> id(fill.size());
+    for (size_t m = 0; m < fill.size(); ++m)
+    {
+      id[m] = NewTetrahedron(tetrahedra[m]);
+      fill[m]->info() = static_cast<int32_t>(m) + 2;
+    }
+    for (size_t m = 0; m < fill.size(); ++m)
+    {
+      const auto c = fill[m];
+      for (int k = 0; k < 4; ++k)
+      {
+        std::array<int32_t, 3> key = { c->vertex((k + 1) % 4)->info(),
+                                       c->vertex((k + 2) % 4)->info(),
+                                       c->vertex((k + 3) % 4)->info() };
+        std::sort(key.begin(), key.end());
+        const LinkFace * f = linkFaceOf(key);
+        const auto       n = c->neighbor(k);
+        const int32_t    across = f ? f->outer : (n->info() >= 2 ? id[n->info() - 2] : -1);
+        Attach(id[m], tetrahedra[m][k], across);
+      }
+      QueueFaces(id[m], queue);
+    }
+    nearby = id.empty() ? -1 : id[0];
+    return !id.empty();
+  }
+
+  /** Inserts node j (not a vertex of any tetrahedron) into a Delaunay tetrahedralization where it lies now: a walk
+   * from tetrahedron `start` to the tetrahedron that holds it, then the tetrahedra whose circumsphere holds it (the
+   * cavity) give way to the tetrahedra that join j to the cavity's faces (Bowyer-Watson); a face on a box plane
+   * through j is left out. False (nothing changed) when j lies outside the box or on a vertex, when the walk takes
+   * more than maximumSteps, or when a new tetrahedron would not be positive. */
+  bool
+  InsertNode(int32_t j, int32_t start, std::vector<uint32_t> & queue, size_t maximumSteps)
+  {
+    int32_t t = start;
+    for (size_t step = 0;; ++step)
+    {
+      if (t < 0 || m_Dead[t] || step > maximumSteps)
+      {
+        return false;
+      }
+      int32_t next = -2;
+      for (int k = 0; k < 4 && next == -2; ++k)
+      {
+        const int i = static_cast<int>((static_cast<size_t>(k) + step) % 4); // rotated: no cycling
+        int32_t   abc[3];
+        FaceNodes(t, i, abc);
+        if (Orientation(abc[0], abc[1], abc[2], j) == CGAL::NEGATIVE)
+        {
+          next = m_Neighbours[t][i];
+          if (next < 0)
+          {
+            return false; // outside the box
+          }
+        }
+      }
+      if (next == -2)
+      {
+        break; // j lies in t or on its boundary
+      }
+      t = next;
+    }
+    if (Side(t, j) != CGAL::ON_BOUNDED_SIDE)
+    {
+      return false;
+    }
+    std::vector<int32_t> cavity{ t }, outside;
+    const auto           contains = [](const std::vector<int32_t> & list, int32_t x) {
+      return std::find(list.begin(), list.end(), x) != list.end();
+    };
+    for (size_t m = 0; m < cavity.size(); ++m)
+    {
+      for (int i = 0; i < 4; ++i)
+      {
+        const int32_t u = m_Neighbours[cavity[m]][i];
+        if (u < 0 || contains(cavity, u) || contains(outside, u))
+        {
+          continue;
+        }
+        (Side(u, j) == CGAL::ON_BOUNDED_SIDE ? cavity : outside).push_back(u);
+      }
+    }
+    // the cavity's faces seen from j: each with the tetrahedron beyond it (-1: the box)
+    std::vector<std::array<int32_t, 4>> created; // a, b, c, j
+    std::vector<int32_t>                beyond;
+    double                              cavityVolume = 0.0, createdVolume = 0.0;
+    for (const int32_t c : cavity)
+    {
+      cavityVolume += SixVolumeOf(m_Vertices[c]);
+      for (int i = 0; i < 4; ++i)
+      {
+        const int32_t u = m_Neighbours[c][i];
+        if (u >= 0 && contains(cavity, u))
+        {
+          continue;
+        }
+        int32_t abc[3];
+        FaceNodes(c, i, abc);
+        const CGAL::Orientation o = Orientation(abc[0], abc[1], abc[2], j);
+        if (o == CGAL::POSITIVE)
+        {
+          created.push_back({ abc[0], abc[1], abc[2], j });
+          beyond.push_back(u);
+          createdVolume += SixVolumeOf(created.back());
+        }
+        else if (o != CGAL::ZERO || u >= 0)
+        {
+          return false; // the cavity is not star-shaped from j
+        }
+      }
+    }
+    // the faces through j: matched by their edge (twice) or on a box plane (once)
+    struct EdgeFace
+    {
+      std::array<int32_t, 2> edge;
+      size_t                 tetrahedron;
+      int32_t                opposite;
+    };
+    std::vector<EdgeFace> faces;
+    for (size_t m = 0; m < created.size(); ++m)
+    {
+      for (int k = 0; k < 3; ++k)
+      {
+        std::array<int32_t, 2> e = { created[m][(k + 1) % 3], created[m][(k + 2) % 3] };
+        std::sort(e.begin(), e.end());
+        faces.push_back({ e, m, created[m][k] });
+      }
+    }
+    std::sort(faces.begin(), faces.end(), [](const EdgeFace & a, const EdgeFace & b) { return a.edge < b.edge; });
+    for (size_t k = 0; k < faces.size();)
+    {
+      size_t e = k + 1;
+      while (e < faces.size() && faces[e].edge == faces[k].edge)
+      {
+        ++e;
+      }
+      if (e - k > 2 || (e - k == 1 && !OnOneBoxPlane({ faces[k].edge[0], faces[k].edge[1], j })))
+      {
+        return false;
+      }
+      k = e;
+    }
+    if (created.empty() || !(std::abs(createdVolume - cavityVolume) <= 1e-9 * cavityVolume))
+    {
+      return false;
+    }
+    for (const int32_t c : cavity)
+    {
+      Kill(c);
+    }
+    std::vector<int32_t> id(created.size());
+    for (size_t m = 0; m < created.size(); ++m)
+    {
+      id[m] = NewTetrahedron(created[m]);
+    }
+    for (size_t m = 0; m < created.size(); ++m)
+    {
+      Attach(id[m], j, beyond[m]);
+    }
+    for (size_t k = 0; k < faces.size();)
+    {
+      const bool pair = k + 1 < faces.size() && faces[k + 1].edge == faces[k].edge;
+      Attach(id[faces[k].tetrahedron], faces[k].opposite, pair ? id[faces[k + 1].tetrahedron] : -1);
+      k += pair ? 2 : 1;
+    }
+    for (const int32_t n : id)
+    {
+      QueueFaces(n, queue);
+    }
+    return true;
+  }
+
   const std::vector<std::array<int32_t, 4>> &
   Vertices() const
   {
@@ -1002,6 +1367,63 @@ private:
       CGAL::side_of_oriented_sphere(m_Points[v[0]], m_Points[v[1]], m_Points[v[2]], m_Points[v[3]], m_Points[e]);
     return s == CGAL::ON_POSITIVE_SIDE ? CGAL::ON_BOUNDED_SIDE
                                        : (s == CGAL::ON_NEGATIVE_SIDE ? CGAL::ON_UNBOUNDED_SIDE : CGAL::ON_BOUNDARY);
+  }
+
+  /** The live tetrahedra that have node j as a vertex (face-connected through the faces that hold j). */
+  bool
+  Star(int32_t j, std::vector<int32_t> & star) const
+  {
+    star.clear();
+    for (size_t t = 0; t < m_Vertices.size() && star.empty(); ++t)
+    {
+      if (!m_Dead[t] && IndexOf(static_cast<int32_t>(t), j) >= 0)
+      {
+        star.push_back(static_cast<int32_t>(t));
+      }
+    }
+    for (size_t m = 0; m < star.size(); ++m)
+    {
+      const int32_t t = star[m];
+      for (int i = 0; i < 4; ++i)
+      {
+        const int32_t u = m_Neighbours[t][i];
+        if (m_Vertices[t][i] != j && u >= 0 && std::find(star.begin(), star.end(), u) == star.end())
+        {
+          star.push_back(u);
+        }
+      }
+    }
+    return !star.empty();
+  }
+
+  /** Six times the signed volume of the tetrahedron with these nodes. */
+  double
+  SixVolumeOf(const std::array<int32_t, 4> & t) const
+  {
+    double x[4][3];
+    for (int k = 0; k < 4; ++k)
+    {
+      x[k][0] = m_Points[t[k]].x();
+      x[k][1] = m_Points[t[k]].y();
+      x[k][2] = m_Points[t[k]].z();
+    }
+    return SixVolume(x[0], x[1], x[2], x[3]);
+  }
+
+  /** Whether the three nodes lie on one plane of the box. */
+  bool
+  OnOneBoxPlane(const std::array<int32_t, 3> & v) const
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      const double x = m_Points[v[0]][static_cast<int>(k)];
+      if ((x == m_Lo[k] || x == m_Hi[k]) && m_Points[v[1]][static_cast<int>(k)] == x &&
+          m_Points[v[2]][static_cast<int>(k)] == x)
+      {
+        return true;
+      }
+    }
+    return false;
   }
 
   int
@@ -1252,12 +1674,16 @@ private:
     return true;
   }
 
-  const std::vector<Point> &          m_Points;
+  std::vector<Point> &                m_Points;
   std::vector<std::array<int32_t, 4>> m_Vertices;
   std::vector<std::array<int32_t, 4>> m_Neighbours;
   std::vector<uint8_t>                m_Dead;
   std::vector<uint8_t>                m_Created;
   std::vector<int32_t>                m_Free;
+  std::vector<std::array<int32_t, 4>> m_SavedVertices;
+  std::vector<std::array<int32_t, 4>> m_SavedNeighbours;
+  double                              m_Lo[3]{ 0.0, 0.0, 0.0 };
+  double                              m_Hi[3]{ 0.0, 0.0, 0.0 };
 };
 } // namespace
 
@@ -1329,12 +1755,46 @@ BlockDelaunay3D(const std::vector<double> &           xyz,
          BlockDelaunay(xyz, unique, lo, hi, threader, marginFactor, tetrahedra, statistics);
 }
 
+namespace
+{
+/** Which box planes node i lies on (bit 2k: lo[k], bit 2k + 1: hi[k]). */
+unsigned int
+BoxPlanes(const double * x, const double * lo, const double * hi)
+{
+  unsigned int planes = 0;
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    planes |= (x[k] == lo[k] ? 1u : 0u) << (2 * k);
+    planes |= (x[k] == hi[k] ? 1u : 0u) << (2 * k + 1);
+  }
+  return planes;
+}
+
+void
+BoundingBox(const std::vector<double> & xyz, double * lo, double * hi)
+{
+  for (unsigned int k = 0; k < 3; ++k)
+  {
+    lo[k] = hi[k] = xyz[k];
+  }
+  for (size_t i = 0; i < xyz.size() / 3; ++i)
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      lo[k] = std::min(lo[k], xyz[3 * i + k]);
+      hi[k] = std::max(hi[k], xyz[3 * i + k]);
+    }
+  }
+}
+} // namespace
+
 bool
 RepairDelaunay3D(const std::vector<double> &                 xyz,
                  const std::vector<std::array<int32_t, 4>> & previous,
                  std::vector<std::array<int32_t, 4>> &       tetrahedra,
                  MultiThreaderBase *                         threader,
-                 DelaunayRepairStatistics *                  statistics)
+                 DelaunayRepairStatistics *                  statistics,
+                 const std::vector<double> *                 previousXyz)
 {
   DelaunayRepairStatistics   unused;
   DelaunayRepairStatistics & stats = statistics ? *statistics : unused;
@@ -1363,19 +1823,34 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
     return false;
   }
   double lo[3], hi[3];
-  for (unsigned int k = 0; k < 3; ++k)
+  BoundingBox(xyz, lo, hi);
+  // With the earlier positions: the nodes that moved onto or off a box plane (a cell's node that snapped to the box
+  // border or left it) are moved by removal and insertion instead of flips; they start where they were.
+  const bool           fromEarlier = previousXyz && previousXyz->size() == xyz.size();
+  std::vector<double>  start = xyz;
+  std::vector<int32_t> jumped;
+  if (fromEarlier)
   {
-    lo[k] = hi[k] = xyz[k];
+    double earlierLo[3], earlierHi[3];
+    BoundingBox(*previousXyz, earlierLo, earlierHi);
+    if (!std::equal(lo, lo + 3, earlierLo) || !std::equal(hi, hi + 3, earlierHi))
+    {
+      return false;
+    }
+    for (size_t i = 0; i < n; ++i)
+    {
+      if (BoxPlanes(&xyz[3 * i], lo, hi) != BoxPlanes(&(*previousXyz)[3 * i], lo, hi))
+      {
+        jumped.push_back(static_cast<int32_t>(i));
+        std::copy(&(*previousXyz)[3 * i], &(*previousXyz)[3 * i] + 3, &start[3 * i]);
+      }
+    }
   }
+  const auto                        pointOf = [](const double * x) { return BlockKernel::Point_3(x[0], x[1], x[2]); };
   std::vector<BlockKernel::Point_3> points(n);
   for (size_t i = 0; i < n; ++i)
   {
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      lo[k] = std::min(lo[k], xyz[3 * i + k]);
-      hi[k] = std::max(hi[k], xyz[3 * i + k]);
-    }
-    points[i] = BlockKernel::Point_3(xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]);
+    points[i] = pointOf(&start[3 * i]);
   }
   FlipRepair   repair(points, previous);
   const size_t nt = previous.size();
@@ -1383,76 +1858,138 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
   {
     return false;
   }
-  // a tiling of the box: positive tetrahedra whose free faces lie on the box and whose volumes sum to the box's
-  // (the winding number of the boundary is then 1 everywhere inside: every point is covered once)
-  const size_t                       nChunks = std::max<size_t>(1, std::min<size_t>(64, nt / 256));
-  std::vector<uint8_t>               positive(nt, 0);
-  std::vector<std::vector<int32_t>>  tangled(nChunks);
-  std::vector<double>                sixVolume(nChunks, 0.0);
-  std::vector<uint8_t>               onBox(nChunks, 1);
-  std::vector<std::vector<uint32_t>> bad(nChunks);
-  const auto &                       v = repair.Vertices();
-  const auto &                       nb = repair.Neighbours();
-  ParallelForChunkIds(threader, nChunks, [&](size_t c) {
-    const size_t begin = nt * c / nChunks, end = nt * (c + 1) / nChunks;
-    repair.Orient(begin, end, positive, tangled[c]);
-    for (size_t t = begin; t < end; ++t)
-    {
-      sixVolume[c] += SixVolume(&xyz[3 * v[t][0]], &xyz[3 * v[t][1]], &xyz[3 * v[t][2]], &xyz[3 * v[t][3]]);
-      for (unsigned int i = 0; i < 4; ++i)
-      {
-        if (nb[t][i] >= 0)
-        {
-          continue;
-        }
-        bool onePlane = false;
-        for (unsigned int k = 0; k < 3 && !onePlane; ++k)
-        {
-          const double x = xyz[3 * v[t][(i + 1) % 4] + k];
-          onePlane =
-            (x == lo[k] || x == hi[k]) && xyz[3 * v[t][(i + 2) % 4] + k] == x && xyz[3 * v[t][(i + 3) % 4] + k] == x;
-        }
-        onBox[c] = onBox[c] && onePlane;
-      }
-    }
-    if (onBox[c])
-    {
-      repair.NonDelaunayFaces(begin, end, positive, bad[c]);
-    }
-  });
-  double               total = 0.0;
-  std::vector<int32_t> notPositive;
-  for (size_t c = 0; c < nChunks; ++c)
+  repair.SetBox(lo, hi);
+  if (fromEarlier)
   {
-    if (!onBox[c])
+    repair.Save();
+  }
+  const size_t          maximumJumps = std::max<size_t>(16, n / 32);
+  const size_t          maximumFlips = 4 * nt + 1000;
+  std::vector<uint32_t> queue, initiallyBad;
+  for (unsigned int round = 0;; ++round)
+  {
+    if (jumped.size() > maximumJumps)
     {
       return false;
     }
-    total += sixVolume[c];
-    notPositive.insert(notPositive.end(), tangled[c].begin(), tangled[c].end());
+    // a tiling of the box: positive tetrahedra whose free faces lie on the box and whose volumes sum to the box's
+    // (the winding number of the boundary is then 1 everywhere inside: every point is covered once)
+    const size_t                       nChunks = std::max<size_t>(1, std::min<size_t>(64, nt / 256));
+    std::vector<uint8_t>               positive(nt, 0);
+    std::vector<std::vector<int32_t>>  tangled(nChunks);
+    std::vector<double>                sixVolume(nChunks, 0.0);
+    std::vector<uint8_t>               onBox(nChunks, 1);
+    std::vector<std::vector<uint32_t>> bad(nChunks);
+    const auto &                       v = repair.Vertices();
+    const auto &                       nb = repair.Neighbours();
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      const size_t begin = nt * c / nChunks, end = nt * (c + 1) / nChunks;
+      repair.Orient(begin, end, positive, tangled[c]);
+      for (size_t t = begin; t < end; ++t)
+      {
+        sixVolume[c] += SixVolume(&start[3 * v[t][0]], &start[3 * v[t][1]], &start[3 * v[t][2]], &start[3 * v[t][3]]);
+        for (unsigned int i = 0; i < 4; ++i)
+        {
+          if (nb[t][i] >= 0)
+          {
+            continue;
+          }
+          bool onePlane = false;
+          for (unsigned int k = 0; k < 3 && !onePlane; ++k)
+          {
+            const double x = start[3 * v[t][(i + 1) % 4] + k];
+            onePlane = (x == lo[k] || x == hi[k]) && start[3 * v[t][(i + 2) % 4] + k] == x &&
+                       start[3 * v[t][(i + 3) % 4] + k] == x;
+          }
+          onBox[c] = onBox[c] && onePlane;
+        }
+      }
+      if (onBox[c])
+      {
+        repair.NonDelaunayFaces(begin, end, positive, bad[c]);
+      }
+    });
+    double               total = 0.0;
+    std::vector<int32_t> notPositive;
+    for (size_t c = 0; c < nChunks; ++c)
+    {
+      if (!onBox[c])
+      {
+        return false;
+      }
+      total += sixVolume[c];
+      notPositive.insert(notPositive.end(), tangled[c].begin(), tangled[c].end());
+    }
+    // the signed volumes (the boundary's) sum to the box's
+    const double box = 6.0 * (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2]);
+    if (!(box > 0.0) || !(std::abs(total - box) <= 1e-9 * box))
+    {
+      return false;
+    }
+    stats = DelaunayRepairStatistics{};
+    stats.tangledTetrahedra = notPositive.size();
+    stats.rounds = round + 1;
+    queue.clear();
+    for (size_t c = 0; c < nChunks; ++c)
+    {
+      queue.insert(queue.end(), bad[c].begin(), bad[c].end());
+    }
+    stats.nonDelaunayFaces = queue.size();
+    initiallyBad = queue;
+    std::vector<int32_t> stuck;
+    if (repair.Untangle(std::move(notPositive), queue, maximumFlips, stats, stuck))
+    {
+      break;
+    }
+    // Untangling got stuck: the moved nodes of the stuck tetrahedra start where they were, and are moved by removal
+    // and insertion; the flips start again from the earlier tetrahedra.
+    const size_t before = jumped.size();
+    for (const int32_t t : stuck)
+    {
+      for (const int32_t i : repair.Vertices()[t])
+      {
+        if (fromEarlier && !std::equal(&xyz[3 * i], &xyz[3 * i] + 3, &(*previousXyz)[3 * i]) &&
+            std::find(jumped.begin(), jumped.end(), i) == jumped.end())
+        {
+          jumped.push_back(i);
+          std::copy(&(*previousXyz)[3 * i], &(*previousXyz)[3 * i] + 3, &start[3 * i]);
+          repair.SetPoint(i, pointOf(&start[3 * i]));
+        }
+      }
+    }
+    if (jumped.size() == before || round == 2)
+    {
+      return false;
+    }
+    repair.Reset();
   }
-  // the signed volumes (the boundary's) sum to the box's
-  const double box = 6.0 * (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2]);
-  if (!(box > 0.0) || !(std::abs(total - box) <= 1e-9 * box))
+  if (!repair.Flip(std::move(queue), maximumFlips, stats))
   {
     return false;
   }
-  stats.tangledTetrahedra = notPositive.size();
-  std::vector<uint32_t> queue;
-  for (size_t c = 0; c < nChunks; ++c)
+  // the jumped nodes, one at a time: out of the (now Delaunay) tetrahedralization where they were, in where they are
+  std::sort(jumped.begin(), jumped.end());
+  for (const int32_t j : jumped)
   {
-    queue.insert(queue.end(), bad[c].begin(), bad[c].end());
+    std::vector<uint32_t> changed;
+    int32_t               nearby = -1;
+    if (!repair.RemoveNode(j, changed, nearby))
+    {
+      return false;
+    }
+    repair.SetPoint(j, pointOf(&xyz[3 * j]));
+    if (!repair.InsertNode(j, nearby, changed, repair.Vertices().size()) ||
+        !repair.Flip(std::move(changed), maximumFlips, stats))
+    {
+      return false;
+    }
+    ++stats.movedByRemoval;
   }
-  stats.nonDelaunayFaces = queue.size();
-  const std::vector<uint32_t> initiallyBad = queue;
-  const size_t                maximumFlips = 4 * nt + 1000;
-  if (!repair.Untangle(std::move(notPositive), queue, maximumFlips, stats) ||
-      !repair.Flip(std::move(queue), maximumFlips, stats))
-  {
-    return false;
-  }
+  const auto & v = repair.Vertices();
   // The faces to check again: those of the tetrahedra the flips made and the initially non-Delaunay faces of old
-  // tetrahedra that are still there; every other face lies between two old tetrahedra and was strictly Delaunay.
+  // tetrahedra that are still there; every other face lies between two old tetrahedra and was strictly Delaunay
+  // (a face of an old tetrahedron of a jumped node was not tested where the node ended up, but the node's
+  // tetrahedra were all removed).
   std::vector<uint32_t> check;
   for (size_t t = 0; t < v.size(); ++t)
   {
@@ -1498,15 +2035,15 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
 }
 
 size_t
-NonDegenerateDelaunay3D(std::vector<double> &                       xyz,
-                        const std::vector<uint8_t> &                freeAxes,
-                        double                                      maximumStep,
-                        std::vector<std::array<int32_t, 4>> &       tetrahedra,
-                        double                                      minimumShape,
-                        unsigned int                                maximumRounds,
-                        MultiThreaderBase *                         threader,
-                        const std::vector<std::array<int32_t, 4>> * warmStart,
-                        bool *                                      repaired)
+NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
+                        const std::vector<uint8_t> &          freeAxes,
+                        double                                maximumStep,
+                        std::vector<std::array<int32_t, 4>> & tetrahedra,
+                        double                                minimumShape,
+                        unsigned int                          maximumRounds,
+                        MultiThreaderBase *                   threader,
+                        const DelaunayWarmStart *             warmStart,
+                        bool *                                repaired)
 {
   if (repaired)
   {
@@ -1523,7 +2060,13 @@ NonDegenerateDelaunay3D(std::vector<double> &                       xyz,
   for (unsigned int round = 0;; ++round)
   {
     // the first round from the warm start where it can vouch for the result (the same list as Delaunay3D's)
-    const bool fromWarmStart = round == 0 && warmStart && RepairDelaunay3D(xyz, *warmStart, tetrahedra, threader);
+    const bool fromWarmStart = round == 0 && warmStart &&
+                               RepairDelaunay3D(xyz,
+                                                warmStart->tetrahedra,
+                                                tetrahedra,
+                                                threader,
+                                                nullptr,
+                                                warmStart->nodes.empty() ? nullptr : &warmStart->nodes);
     if (repaired && round == 0)
     {
       *repaired = fromWarmStart;

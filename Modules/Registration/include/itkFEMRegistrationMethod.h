@@ -475,8 +475,9 @@ private:
   typename MeshType::Pointer              m_CurrentItkMesh;
   size_t                                  m_CurrentMeshVersion{ 0 };
   size_t                                  m_CurrentItkMeshVersion{ 0 };
-  // the last 3D dual mesh's tetrahedra (cell indices), which the next one is repaired from (dmr::RepairDelaunay3D)
-  std::vector<std::array<int32_t, 4>> m_TetrahedraWarmStart;
+  // the last 3D dual mesh's tetrahedra (cell indices) and nodes, which the next one is repaired from
+  // (dmr::RepairDelaunay3D)
+  dmr::DelaunayWarmStart m_DelaunayWarmStart;
 };
 } // namespace itk
 

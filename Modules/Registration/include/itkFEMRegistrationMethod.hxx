@@ -410,7 +410,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
                                                    dmr::DefaultSnapToBoxEdges,
                                                    nullptr,
                                                    threader,
-                                                   &m_TetrahedraWarmStart);
+                                                   &m_DelaunayWarmStart);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -529,7 +529,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
   m_Labels = nullptr;
-  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
+  m_DelaunayWarmStart.clear();
 
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
@@ -571,7 +571,7 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   m_Solver->SetGPUOrderSolve(m_GPUOrderSolve);
   m_Solver->SetMultiThreader(this->GetMultiThreader());
   m_Labels = nullptr;
-  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
+  m_DelaunayWarmStart.clear();
   m_InverseDisplacementField = nullptr;
 
   m_History.clear();
@@ -1153,7 +1153,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       dmr::ThrowOnError(summarizer.Summarize(D, grid.size.data(), cvt.DeviceLabels(), m_NumberOfNodes, summary),
                         "label summary");
       m_DynamicSimplexMesh = dmr::BuildDualMesh<D>(
-        grid, summary, centroids.data(), dmr::DefaultSnapToBoxEdges, nullptr, threader, &m_TetrahedraWarmStart);
+        grid, summary, centroids.data(), dmr::DefaultSnapToBoxEdges, nullptr, threader, &m_DelaunayWarmStart);
       m_CurrentMesh = &m_DynamicSimplexMesh;
       ++m_CurrentMeshVersion;
       m_Timing.meshConstruction += seconds(t0, Clock::now());
@@ -1313,7 +1313,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   m_DensityFilter->ReleaseInternalBuffers();
   m_CVTFilter->GetOutput()->ReleaseData();
   m_Labels = nullptr;
-  std::vector<std::array<int32_t, 4>>().swap(m_TetrahedraWarmStart);
+  m_DelaunayWarmStart.clear();
   this->MakeTransformOutput();
   m_Timing.total = seconds(tStart, Clock::now());
   this->UpdateProgress(1.0f);
