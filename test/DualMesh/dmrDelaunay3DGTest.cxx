@@ -23,6 +23,7 @@
 #include <algorithm>
 #include <cmath>
 #include <iostream>
+#include <map>
 #include <random>
 
 namespace
@@ -768,6 +769,113 @@ TEST(Delaunay3D, RepairMovesNodesOntoAndOffTheBoxFromTheirEarlierPositions)
   EXPECT_GT(secondRounds, 0u);
 }
 
+namespace
+{
+/** The neighbours RepairDelaunay3D gives are those of the list: opposite node m of tetrahedron k lies the one that
+ * holds the other three nodes of k (found by brute force over the faces), -1 where no other one does. */
+void
+ExpectNeighboursOf(const Tetrahedra & t, const std::vector<std::array<int32_t, 4>> & neighbours)
+{
+  ASSERT_EQ(neighbours.size(), t.size());
+  std::map<std::array<int32_t, 3>, std::vector<int32_t>> holders;
+  for (size_t k = 0; k < t.size(); ++k)
+  {
+    for (int m = 0; m < 4; ++m)
+    {
+      std::array<int32_t, 3> face = { t[k][(m + 1) % 4], t[k][(m + 2) % 4], t[k][(m + 3) % 4] };
+      std::sort(face.begin(), face.end());
+      holders[face].push_back(static_cast<int32_t>(k));
+    }
+  }
+  for (size_t k = 0; k < t.size(); ++k)
+  {
+    for (int m = 0; m < 4; ++m)
+    {
+      std::array<int32_t, 3> face = { t[k][(m + 1) % 4], t[k][(m + 2) % 4], t[k][(m + 3) % 4] };
+      std::sort(face.begin(), face.end());
+      const auto &  h = holders[face];
+      const int32_t other = h.size() == 2 ? (h[0] == static_cast<int32_t>(k) ? h[1] : h[0]) : -1;
+      ASSERT_EQ(neighbours[k][m], other) << "tetrahedron " << k << ", node " << m;
+    }
+  }
+}
+} // namespace
+
+/** The neighbours of a repair, carried to the next one, spare finding them again and give the same lists; neighbours
+ * that do not fit the tetrahedra are refused, not trusted. */
+TEST(Delaunay3D, RepairCarriesTheNeighboursToTheNextOne)
+{
+  const double                side[3] = { 300.0, 260.0, 180.0 };
+  const double                h = 16.0;
+  itk::dmr::DelaunayWarmStart warm;
+  warm.nodes = DualMeshLikeNodes(side[0], side[1], side[2], h, true, false, 14u);
+  itk::dmr::Delaunay3D(warm.nodes, warm.tetrahedra, Threader(2));
+  size_t withNeighbours = 0;
+  for (uint32_t move = 0; move < 10; ++move)
+  {
+    const auto xyz = JumpNodes(MoveNodes(warm.nodes, side, 0.01 * h, 500 + move), side, h, move % 2, 600 + move);
+    Tetrahedra reference, t;
+    itk::dmr::Delaunay3D(xyz, reference, Threader(2));
+    std::vector<std::array<int32_t, 4>> neighbours;
+    const bool repaired = itk::dmr::RepairDelaunay3D(xyz, warm, t, Threader(2), nullptr, &neighbours);
+    withNeighbours += repaired && !warm.neighbours.empty() ? 1 : 0;
+    if (repaired)
+    {
+      ASSERT_EQ(t, reference) << "move " << move;
+      ExpectNeighboursOf(t, neighbours);
+      // the same without them
+      itk::dmr::DelaunayWarmStart bare = warm;
+      bare.neighbours.clear();
+      Tetrahedra again;
+      ASSERT_TRUE(itk::dmr::RepairDelaunay3D(xyz, bare, again, Threader(2)));
+      EXPECT_EQ(again, t);
+    }
+    else
+    {
+      EXPECT_TRUE(neighbours.empty());
+    }
+    // neighbours that do not fit: one entry pointing at another tetrahedron, two swapped, one freed, one reversed
+    // tetrahedron
+    if (!warm.neighbours.empty())
+    {
+      for (int corruption = 0; corruption < 4; ++corruption)
+      {
+        itk::dmr::DelaunayWarmStart bad = warm;
+        const size_t                k = 97 % bad.tetrahedra.size();
+        int                         m = 0;
+        while (bad.neighbours[k][m] < 0)
+        {
+          ++m;
+        }
+        switch (corruption)
+        {
+          case 0:
+            bad.neighbours[k][m] = static_cast<int32_t>((bad.neighbours[k][m] + 1) % bad.tetrahedra.size());
+            break;
+          case 1:
+            std::swap(bad.neighbours[k][m], bad.neighbours[k][(m + 1) % 4]);
+            break;
+          case 2:
+            bad.neighbours[bad.neighbours[k][m]] = { -1, -1, -1, -1 };
+            bad.neighbours[k][m] = -1;
+            break;
+          default:
+            std::swap(bad.tetrahedra[k][0], bad.tetrahedra[k][1]);
+            std::swap(bad.neighbours[k][0], bad.neighbours[k][1]);
+            break;
+        }
+        Tetrahedra out{ { 0, 1, 2, 3 } };
+        EXPECT_FALSE(itk::dmr::RepairDelaunay3D(xyz, bad, out, Threader(2))) << "corruption " << corruption;
+        EXPECT_TRUE(out.empty());
+      }
+    }
+    warm.nodes = xyz;
+    warm.tetrahedra = reference;
+    warm.neighbours = repaired ? neighbours : std::vector<std::array<int32_t, 4>>{};
+  }
+  EXPECT_GE(withNeighbours, 6u);
+}
+
 /** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are (or
  * are not consistently oriented), and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's
  * CGAL run decides there). */
@@ -869,20 +977,26 @@ TEST(Delaunay3D, NudgingFromAWarmStartGivesTheSameResult)
   size_t repairedCount = 0;
   for (uint32_t move = 0; move < 6; ++move)
   {
-    const auto          moved = MoveNodes(start, side, 0.05 * (move + 1), 200 + move);
-    std::vector<double> a = moved, b = moved;
-    Tetrahedra          fromWarm, fresh;
-    bool                repaired = false;
-    const size_t        nudgedWarm =
-      itk::dmr::NonDegenerateDelaunay3D(a, freeAxes, 0.25, fromWarm, flatShape, rounds, Threader(2), &warm, &repaired);
+    const auto                          moved = MoveNodes(start, side, 0.05 * (move + 1), 200 + move);
+    std::vector<double>                 a = moved, b = moved;
+    Tetrahedra                          fromWarm, fresh;
+    bool                                repaired = false;
+    std::vector<std::array<int32_t, 4>> neighbours;
+    const size_t                        nudgedWarm = itk::dmr::NonDegenerateDelaunay3D(
+      a, freeAxes, 0.25, fromWarm, flatShape, rounds, Threader(2), &warm, &repaired, &neighbours);
     const size_t nudgedFresh =
       itk::dmr::NonDegenerateDelaunay3D(b, freeAxes, 0.25, fresh, flatShape, rounds, Threader(2));
     EXPECT_EQ(fromWarm, fresh) << "move " << move;
     EXPECT_EQ(a, b) << "move " << move;
     EXPECT_EQ(nudgedWarm, nudgedFresh);
     repairedCount += repaired ? 1 : 0;
+    if (!neighbours.empty())
+    {
+      ExpectNeighboursOf(fromWarm, neighbours);
+    }
     warm.tetrahedra = fromWarm;
     warm.nodes = a;
+    warm.neighbours = neighbours;
   }
   EXPECT_GT(repairedCount, 0u) << "the warm start was never used";
   // near-flat tetrahedra (a lattice with tiny noise), warm-started from the tetrahedralization of a noisier one: the

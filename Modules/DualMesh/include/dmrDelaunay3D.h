@@ -110,6 +110,9 @@ struct DelaunayWarmStart
 {
   std::vector<double>                 nodes; // x, y, z per node
   std::vector<std::array<int32_t, 4>> tetrahedra;
+  // optional: for each tetrahedron the one opposite each of its nodes (-1 on the box), as RepairDelaunay3D gives them;
+  // checked before use, and found again from the faces when absent
+  std::vector<std::array<int32_t, 4>> neighbours;
 
   bool
   empty() const
@@ -121,6 +124,7 @@ struct DelaunayWarmStart
   {
     std::vector<double>().swap(nodes);
     std::vector<std::array<int32_t, 4>>().swap(tetrahedra);
+    std::vector<std::array<int32_t, 4>>().swap(neighbours);
   }
 };
 
@@ -149,6 +153,17 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
                  DelaunayRepairStatistics *                  statistics = nullptr,
                  const std::vector<double> *                 previousXyz = nullptr);
 
+/** RepairDelaunay3D from a warm start: its tetrahedra, its nodes (previousXyz; none when empty) and, when given, its
+ * neighbours, which spare finding them from the faces (they are checked first). neighbours (optional): set to those
+ * of the result (for the next call's warm start); empty when it returns false. */
+DynamicMeshRegistration_EXPORT bool
+RepairDelaunay3D(const std::vector<double> &           xyz,
+                 const DelaunayWarmStart &             warmStart,
+                 std::vector<std::array<int32_t, 4>> & tetrahedra,
+                 MultiThreaderBase *                   threader = nullptr,
+                 DelaunayRepairStatistics *            statistics = nullptr,
+                 std::vector<std::array<int32_t, 4>> * neighbours = nullptr);
+
 /** Threshold of NonDegenerateDelaunay3D as DualMeshFilter uses it: a tetrahedron with shape below 1e-6 counts as flat.
  * Its four nodes are then coplanar to within a millionth of its size: its volume is still far above double round-off
  * (about 1e-14 relative for images up to a few thousand voxels across), but its FEM stiffness would scale as 1/shape.
@@ -172,7 +187,8 @@ TetrahedronShape(const double * a, const double * b, const double * c, const dou
  * tetrahedron remains after maximumRounds rounds or consists of pinned nodes only.
  * warmStart (optional): an earlier tetrahedralization of these nodes and where they were then, tried first through
  * RepairDelaunay3D; the result does not depend on it. repaired (optional): set to whether the first round's
- * tetrahedralization came from it. */
+ * tetrahedralization came from it. neighbours (optional): set to the result's neighbours where it came from the warm
+ * start unchanged (for the next warm start), else cleared. */
 DynamicMeshRegistration_EXPORT size_t
 NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
                         const std::vector<uint8_t> &          freeAxes,
@@ -182,7 +198,8 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
                         unsigned int                          maximumRounds,
                         MultiThreaderBase *                   threader = nullptr,
                         const DelaunayWarmStart *             warmStart = nullptr,
-                        bool *                                repaired = nullptr);
+                        bool *                                repaired = nullptr,
+                        std::vector<std::array<int32_t, 4>> * neighbours = nullptr);
 } // namespace dmr
 } // namespace itk
 

@@ -531,7 +531,8 @@ BuildDualMesh(const Grid<D> &      grid,
     {
       minimumSpacing = std::min(minimumSpacing, grid.spacing[k]);
     }
-    const bool warm = warmStart && !warmStart->empty();
+    const bool                          warm = warmStart && !warmStart->empty();
+    std::vector<std::array<int32_t, 4>> neighbours;
     stats.numberOfPerturbedNodes = NonDegenerateDelaunay3D(nodes,
                                                            freeAxes,
                                                            0.25 * minimumSpacing,
@@ -540,10 +541,12 @@ BuildDualMesh(const Grid<D> &      grid,
                                                            12,
                                                            threader,
                                                            warm ? warmStart : nullptr,
-                                                           &stats.repairedFromWarmStart);
+                                                           &stats.repairedFromWarmStart,
+                                                           warmStart ? &neighbours : nullptr);
     if (warmStart)
     {
       warmStart->tetrahedra = elements;
+      warmStart->neighbours = std::move(neighbours);
       warmStart->nodes = nodes; // where NonDegenerateDelaunay3D left them
     }
     // how much of the CVT adjacency between inner cells the tetrahedralization holds (when asked for)

@@ -766,44 +766,69 @@ public:
     m_Points[j] = p;
   }
 
-  /** Neighbours from matching faces (their sorted node triples, in three counting-sort passes over the node
-   * indices): false unless every face is held by one or two tetrahedra that give it opposite orientations (as in a
-   * tetrahedralization whose tetrahedra are all positive). */
+  /** Neighbours from matching faces (their sorted node triples packed into one integer, in three counting-sort
+   * passes, one per node): false unless every face is held by one or two tetrahedra that give it opposite
+   * orientations (as in a tetrahedralization whose tetrahedra are all positive). */
   bool
   Link(size_t numberOfNodes)
   {
-    const size_t                        nt = m_Vertices.size(), nf = 4 * nt;
-    std::vector<std::array<int32_t, 3>> key(nf);
+    const size_t nt = m_Vertices.size(), nf = 4 * nt;
+    unsigned int bits = 1;
+    while ((size_t{ 1 } << bits) < numberOfNodes)
+    {
+      ++bits;
+    }
+    // (face key, face) pairs: the key is the sorted node triple a < b < c as (a << 2 bits | b << bits | c)
+    std::vector<uint64_t> key(nf), keyOut(nf);
+    std::vector<uint32_t> face(nf), faceOut(nf);
     for (size_t t = 0; t < nt; ++t)
     {
       for (unsigned int i = 0; i < 4; ++i)
       {
-        auto & k = key[4 * t + i];
-        k = { m_Vertices[t][(i + 1) % 4], m_Vertices[t][(i + 2) % 4], m_Vertices[t][(i + 3) % 4] };
-        std::sort(k.begin(), k.end());
+        uint32_t k[3] = { static_cast<uint32_t>(m_Vertices[t][(i + 1) % 4]),
+                          static_cast<uint32_t>(m_Vertices[t][(i + 2) % 4]),
+                          static_cast<uint32_t>(m_Vertices[t][(i + 3) % 4]) };
+        if (k[0] > k[1])
+        {
+          std::swap(k[0], k[1]);
+        }
+        if (k[1] > k[2])
+        {
+          std::swap(k[1], k[2]);
+        }
+        if (k[0] > k[1])
+        {
+          std::swap(k[0], k[1]);
+        }
+        key[4 * t + i] = (uint64_t{ k[0] } << (2 * bits)) | (uint64_t{ k[1] } << bits) | uint64_t{ k[2] };
+        face[4 * t + i] = static_cast<uint32_t>(4 * t + i);
       }
     }
-    std::vector<uint32_t> order(nf), sorted(nf), count(numberOfNodes + 1);
-    std::iota(order.begin(), order.end(), 0u);
-    for (int digit = 2; digit >= 0; --digit)
+    const uint64_t        mask = (uint64_t{ 1 } << bits) - 1;
+    std::vector<uint32_t> count((size_t{ 1 } << bits) + 1);
+    for (unsigned int pass = 0; pass < 3; ++pass)
     {
+      const unsigned int shift = pass * bits;
       std::fill(count.begin(), count.end(), 0u);
-      for (const uint32_t f : order)
+      for (const uint64_t k : key)
       {
-        ++count[key[f][digit] + 1];
+        ++count[((k >> shift) & mask) + 1];
       }
       std::partial_sum(count.begin(), count.end(), count.begin());
-      for (const uint32_t f : order)
+      for (size_t f = 0; f < nf; ++f)
       {
-        sorted[count[key[f][digit]]++] = f;
+        const uint32_t to = count[(key[f] >> shift) & mask]++;
+        keyOut[to] = key[f];
+        faceOut[to] = face[f];
       }
-      order.swap(sorted);
+      key.swap(keyOut);
+      face.swap(faceOut);
     }
     m_Neighbours.assign(nt, { -1, -1, -1, -1 });
     for (size_t k = 0; k < nf;)
     {
       size_t e = k + 1;
-      while (e < nf && key[order[e]] == key[order[k]])
+      while (e < nf && key[e] == key[k])
       {
         ++e;
       }
@@ -813,7 +838,7 @@ public:
       }
       if (e - k == 2)
       {
-        const uint32_t a = order[k], b = order[k + 1];
+        const uint32_t a = face[k], b = face[k + 1];
         if (!OppositelyOriented(a, b))
         {
           return false; // the two tetrahedra would lie on the same side of their face once both are positive
@@ -822,6 +847,61 @@ public:
         m_Neighbours[b / 4][b % 4] = static_cast<int32_t>(a / 4);
       }
       k = e;
+    }
+    return true;
+  }
+
+  /** Takes the neighbours of an earlier call instead of Link; they are not trusted: CheckNeighbours must accept
+   * every tetrahedron before anything else reads them. */
+  bool
+  Adopt(const std::vector<std::array<int32_t, 4>> & neighbours)
+  {
+    if (neighbours.size() != m_Vertices.size())
+    {
+      return false;
+    }
+    m_Neighbours = neighbours;
+    return true;
+  }
+
+  /** Whether the adopted neighbours of the tetrahedra of [begin, end) are consistent: each names its tetrahedron
+   * back across the same three nodes, which the two order oppositely. With the later checks (free faces on the box,
+   * the volume) this proves a tiling as Link's matching does: the faces the neighbours leave free are then exactly
+   * the boundary of the tetrahedra. */
+  bool
+  CheckNeighbours(size_t begin, size_t end) const
+  {
+    const size_t nt = m_Vertices.size();
+    for (size_t t = begin; t < end; ++t)
+    {
+      for (int i = 0; i < 4; ++i)
+      {
+        const int32_t u = m_Neighbours[t][i];
+        if (u < 0)
+        {
+          if (u != -1)
+          {
+            return false;
+          }
+          continue;
+        }
+        if (static_cast<size_t>(u) >= nt || static_cast<size_t>(u) == t)
+        {
+          return false;
+        }
+        int back = -1;
+        for (int k = 0; k < 4; ++k)
+        {
+          back = m_Neighbours[u][k] == static_cast<int32_t>(t) ? k : back;
+        }
+        // u's node opposite the shared face is not one of t's, and t's is not one of u's: the other three are shared
+        if (back < 0 || IndexOf(static_cast<int32_t>(t), m_Vertices[u][back]) >= 0 ||
+            IndexOf(u, m_Vertices[t][i]) >= 0 ||
+            !OppositelyOriented(static_cast<uint32_t>(4 * t + i), static_cast<uint32_t>(4 * u + back)))
+        {
+          return false;
+        }
+      }
     }
     return true;
   }
@@ -1788,14 +1868,22 @@ BoundingBox(const std::vector<double> & xyz, double * lo, double * hi)
 }
 } // namespace
 
-bool
-RepairDelaunay3D(const std::vector<double> &                 xyz,
-                 const std::vector<std::array<int32_t, 4>> & previous,
-                 std::vector<std::array<int32_t, 4>> &       tetrahedra,
-                 MultiThreaderBase *                         threader,
-                 DelaunayRepairStatistics *                  statistics,
-                 const std::vector<double> *                 previousXyz)
+namespace
 {
+bool
+Repair(const std::vector<double> &                 xyz,
+       const std::vector<std::array<int32_t, 4>> & previous,
+       const std::vector<double> *                 previousXyz,
+       const std::vector<std::array<int32_t, 4>> * previousNeighbours,
+       std::vector<std::array<int32_t, 4>> &       tetrahedra,
+       std::vector<std::array<int32_t, 4>> *       neighbours,
+       MultiThreaderBase *                         threader,
+       DelaunayRepairStatistics *                  statistics)
+{
+  if (neighbours)
+  {
+    neighbours->clear();
+  }
   DelaunayRepairStatistics   unused;
   DelaunayRepairStatistics & stats = statistics ? *statistics : unused;
   stats = DelaunayRepairStatistics{};
@@ -1854,7 +1942,8 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
   }
   FlipRepair   repair(points, previous);
   const size_t nt = previous.size();
-  if (!repair.Link(n))
+  const bool   adopted = previousNeighbours && repair.Adopt(*previousNeighbours); // checked in the first round
+  if (!adopted && !repair.Link(n))
   {
     return false;
   }
@@ -1884,6 +1973,11 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
     const auto &                       nb = repair.Neighbours();
     ParallelForChunkIds(threader, nChunks, [&](size_t c) {
       const size_t begin = nt * c / nChunks, end = nt * (c + 1) / nChunks;
+      if (adopted && round == 0 && !repair.CheckNeighbours(begin, end))
+      {
+        onBox[c] = 0; // refused below
+        return;
+      }
       repair.Orient(begin, end, positive, tangled[c]);
       for (size_t t = begin; t < end; ++t)
       {
@@ -2013,25 +2107,88 @@ RepairDelaunay3D(const std::vector<double> &                 xyz,
     return false;
   }
   // canonical and sorted: the old tetrahedra keep their order (previous is usually Delaunay3D's sorted list), the
-  // new ones are sorted and merged in
-  std::vector<std::array<int32_t, 4>> created;
-  tetrahedra.reserve(v.size());
+  // new ones are sorted and merged in; each with its slot, for the neighbours
+  using Entry = std::pair<std::array<int32_t, 4>, int32_t>;
+  std::vector<Entry> entries, created;
+  entries.reserve(v.size());
   for (size_t t = 0; t < v.size(); ++t)
   {
     if (!repair.Dead(t))
     {
-      (repair.Created(t) ? created : tetrahedra).push_back(CanonicalTetrahedron(v[t]));
+      (repair.Created(t) ? created : entries).emplace_back(CanonicalTetrahedron(v[t]), static_cast<int32_t>(t));
     }
   }
-  if (!std::is_sorted(tetrahedra.begin(), tetrahedra.end()))
+  const auto byTetrahedron = [](const Entry & a, const Entry & b) { return a.first < b.first; };
+  if (!std::is_sorted(entries.begin(), entries.end(), byTetrahedron))
   {
-    std::sort(tetrahedra.begin(), tetrahedra.end());
+    std::sort(entries.begin(), entries.end(), byTetrahedron);
   }
-  std::sort(created.begin(), created.end());
-  const auto middle = static_cast<std::ptrdiff_t>(tetrahedra.size());
-  tetrahedra.insert(tetrahedra.end(), created.begin(), created.end());
-  std::inplace_merge(tetrahedra.begin(), tetrahedra.begin() + middle, tetrahedra.end());
+  std::sort(created.begin(), created.end(), byTetrahedron);
+  const auto middle = static_cast<std::ptrdiff_t>(entries.size());
+  entries.insert(entries.end(), created.begin(), created.end());
+  std::inplace_merge(entries.begin(), entries.begin() + middle, entries.end(), byTetrahedron);
+  tetrahedra.resize(entries.size());
+  for (size_t k = 0; k < entries.size(); ++k)
+  {
+    tetrahedra[k] = entries[k].first;
+  }
+  if (neighbours)
+  {
+    // the neighbour opposite each node of the canonical tetrahedron, as positions in the list
+    std::vector<int32_t> position(v.size(), -1);
+    for (size_t k = 0; k < entries.size(); ++k)
+    {
+      position[entries[k].second] = static_cast<int32_t>(k);
+    }
+    const auto & nb = repair.Neighbours();
+    neighbours->resize(entries.size());
+    for (size_t k = 0; k < entries.size(); ++k)
+    {
+      const int32_t slot = entries[k].second;
+      for (int m = 0; m < 4; ++m)
+      {
+        int i = 0;
+        while (v[slot][i] != entries[k].first[m])
+        {
+          ++i;
+        }
+        const int32_t u = nb[slot][i];
+        (*neighbours)[k][m] = u < 0 ? -1 : position[u];
+      }
+    }
+  }
   return true;
+}
+
+} // namespace
+
+bool
+RepairDelaunay3D(const std::vector<double> &                 xyz,
+                 const std::vector<std::array<int32_t, 4>> & previous,
+                 std::vector<std::array<int32_t, 4>> &       tetrahedra,
+                 MultiThreaderBase *                         threader,
+                 DelaunayRepairStatistics *                  statistics,
+                 const std::vector<double> *                 previousXyz)
+{
+  return Repair(xyz, previous, previousXyz, nullptr, tetrahedra, nullptr, threader, statistics);
+}
+
+bool
+RepairDelaunay3D(const std::vector<double> &           xyz,
+                 const DelaunayWarmStart &             warmStart,
+                 std::vector<std::array<int32_t, 4>> & tetrahedra,
+                 MultiThreaderBase *                   threader,
+                 DelaunayRepairStatistics *            statistics,
+                 std::vector<std::array<int32_t, 4>> * neighbours)
+{
+  return Repair(xyz,
+                warmStart.tetrahedra,
+                warmStart.nodes.empty() ? nullptr : &warmStart.nodes,
+                warmStart.neighbours.empty() ? nullptr : &warmStart.neighbours,
+                tetrahedra,
+                neighbours,
+                threader,
+                statistics);
 }
 
 size_t
@@ -2043,11 +2200,16 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
                         unsigned int                          maximumRounds,
                         MultiThreaderBase *                   threader,
                         const DelaunayWarmStart *             warmStart,
-                        bool *                                repaired)
+                        bool *                                repaired,
+                        std::vector<std::array<int32_t, 4>> * neighbours)
 {
   if (repaired)
   {
     *repaired = false;
+  }
+  if (neighbours)
+  {
+    neighbours->clear();
   }
   const size_t n = xyz.size() / 3;
   if (freeAxes.size() != n)
@@ -2060,13 +2222,8 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
   for (unsigned int round = 0;; ++round)
   {
     // the first round from the warm start where it can vouch for the result (the same list as Delaunay3D's)
-    const bool fromWarmStart = round == 0 && warmStart &&
-                               RepairDelaunay3D(xyz,
-                                                warmStart->tetrahedra,
-                                                tetrahedra,
-                                                threader,
-                                                nullptr,
-                                                warmStart->nodes.empty() ? nullptr : &warmStart->nodes);
+    const bool fromWarmStart =
+      round == 0 && warmStart && RepairDelaunay3D(xyz, *warmStart, tetrahedra, threader, nullptr, neighbours);
     if (repaired && round == 0)
     {
       *repaired = fromWarmStart;
@@ -2074,6 +2231,10 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
     if (!fromWarmStart)
     {
       Delaunay3D(xyz, tetrahedra, threader);
+      if (neighbours)
+      {
+        neighbours->clear(); // known for the repaired tetrahedra only
+      }
     }
     // the step each node of a flat tetrahedron takes this round (the smallest its flat tetrahedra ask for)
     std::vector<double> step(n, 0.0);
