@@ -2217,8 +2217,8 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
     itkGenericExceptionMacro("NonDegenerateDelaunay3D: " << freeAxes.size() << " free-axis masks for " << n
                                                          << " nodes");
   }
-  const std::vector<int32_t> first = FirstAtSamePosition(xyz);
-  const std::vector<double>  original = xyz;
+  std::vector<int32_t> first;    // for each node the first at its position (once nodes are moved)
+  std::vector<double>  original; // the input positions (once nodes are moved)
   for (unsigned int round = 0;; ++round)
   {
     // the first round from the warm start where it can vouch for the result (the same list as Delaunay3D's)
@@ -2236,31 +2236,50 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
         neighbours->clear(); // known for the repaired tetrahedra only
       }
     }
-    // the step each node of a flat tetrahedron takes this round (the smallest its flat tetrahedra ask for)
-    std::vector<double> step(n, 0.0);
-    size_t              flat = 0;
-    for (const auto & t : tetrahedra)
-    {
-      const double * p[4] = { &xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]] };
-      if (TetrahedronShape(p[0], p[1], p[2], p[3]) >= minimumShape)
+    // the flat tetrahedra (found side by side), then the step each of their nodes takes this round (the smallest
+    // its flat tetrahedra ask for)
+    const size_t                      nt = tetrahedra.size();
+    const size_t                      nChunks = std::max<size_t>(1, std::min<size_t>(64, nt / 1024));
+    std::vector<std::vector<int32_t>> flatIn(nChunks);
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      for (size_t e = nt * c / nChunks; e < nt * (c + 1) / nChunks; ++e)
       {
-        continue;
-      }
-      ++flat;
-      const double s = std::min(maximumStep, 0.01 * std::ldexp(LongestEdge(p), static_cast<int>(round)));
-      bool         movable = false;
-      for (int32_t v : t)
-      {
-        if (freeAxes[v] & 7u)
+        const auto &   t = tetrahedra[e];
+        const double * p[4] = { &xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]] };
+        if (TetrahedronShape(p[0], p[1], p[2], p[3]) < minimumShape)
         {
-          movable = true;
-          step[v] = step[v] > 0.0 ? std::min(step[v], s) : s;
+          flatIn[c].push_back(static_cast<int32_t>(e));
         }
       }
-      if (!movable)
+    });
+    std::vector<double> step;
+    size_t              flat = 0;
+    for (const auto & list : flatIn)
+    {
+      if (!list.empty() && step.empty())
       {
-        itkGenericExceptionMacro("a flat tetrahedron (shape below " << minimumShape
-                                                                    << ") consists of pinned nodes only");
+        step.assign(n, 0.0);
+      }
+      for (const int32_t e : list)
+      {
+        const auto &   t = tetrahedra[e];
+        const double * p[4] = { &xyz[3 * t[0]], &xyz[3 * t[1]], &xyz[3 * t[2]], &xyz[3 * t[3]] };
+        ++flat;
+        const double s = std::min(maximumStep, 0.01 * std::ldexp(LongestEdge(p), static_cast<int>(round)));
+        bool         movable = false;
+        for (int32_t v : t)
+        {
+          if (freeAxes[v] & 7u)
+          {
+            movable = true;
+            step[v] = step[v] > 0.0 ? std::min(step[v], s) : s;
+          }
+        }
+        if (!movable)
+        {
+          itkGenericExceptionMacro("a flat tetrahedron (shape below " << minimumShape
+                                                                      << ") consists of pinned nodes only");
+        }
       }
     }
     if (flat == 0)
@@ -2272,6 +2291,11 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
       itkGenericExceptionMacro("NonDegenerateDelaunay3D: " << flat << " tetrahedra are still flat (shape below "
                                                            << minimumShape << ") after " << maximumRounds
                                                            << " rounds of node perturbation");
+    }
+    if (original.empty())
+    {
+      original = xyz; // nothing moved yet
+      first = FirstAtSamePosition(xyz);
     }
     for (size_t i = 0; i < n; ++i)
     {
@@ -2307,7 +2331,7 @@ NonDegenerateDelaunay3D(std::vector<double> &                 xyz,
     }
   }
   size_t moved = 0;
-  for (size_t i = 0; i < n; ++i)
+  for (size_t i = 0; i < n && !original.empty(); ++i)
   {
     moved += std::equal(&xyz[3 * i], &xyz[3 * i] + 3, &original[3 * i]) ? 0 : 1;
   }
