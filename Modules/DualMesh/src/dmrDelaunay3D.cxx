@@ -1216,14 +1216,9 @@ public:
       return false;
     }
     // commit: the star out, the filling in, linked to each other, to the outer tetrahedra and to the box
-    for (const int32_t t : star)
-    {
-      Kill(t);
-    }
-    std::vector<int32_t> id(fill.size());
+    const std::vector<int32_t> id = Replace(star, tetrahedra);
     for (size_t m = 0; m < fill.size(); ++m)
     {
-      id[m] = NewTetrahedron(tetrahedra[m]);
       fill[m]->info() = static_cast<int32_t>(m) + 2;
     }
     for (size_t m = 0; m < fill.size(); ++m)
@@ -1366,15 +1361,7 @@ public:
     {
       return false;
     }
-    for (const int32_t c : cavity)
-    {
-      Kill(c);
-    }
-    std::vector<int32_t> id(created.size());
-    for (size_t m = 0; m < created.size(); ++m)
-    {
-      id[m] = NewTetrahedron(created[m]);
-    }
+    const std::vector<int32_t> id = Replace(cavity, created);
     for (size_t m = 0; m < created.size(); ++m)
     {
       Attach(id[m], j, beyond[m]);
@@ -1611,6 +1598,22 @@ private:
   {
     m_Dead[t] = 1;
     m_Free.push_back(t);
+  }
+
+  /** The tetrahedra `gone` out, new ones with the nodes of `made` in (not yet linked); their slots. */
+  std::vector<int32_t>
+  Replace(const std::vector<int32_t> & gone, const std::vector<std::array<int32_t, 4>> & made)
+  {
+    for (const int32_t t : gone)
+    {
+      Kill(t);
+    }
+    std::vector<int32_t> id(made.size());
+    for (size_t m = 0; m < made.size(); ++m)
+    {
+      id[m] = NewTetrahedron(made[m]);
+    }
+    return id;
   }
 
   /** The neighbour of old tetrahedron `from` opposite its vertex v (-1 on the box). */
