@@ -245,20 +245,15 @@ CanonicalTetrahedron(std::array<int32_t, 4> t)
   return t;
 }
 
-/** Whether the convex hull of the distinct nodes `unique` is their bounding box [lo, hi] (its 8 corners are nodes,
- * every extent positive), as for the dual mesh's nodes. */
-bool
-HullIsBoundingBox(const std::vector<double> & xyz, const std::vector<int32_t> & unique, double * lo, double * hi)
+/** The nodes' bounding box. */
+void
+BoundingBox(const std::vector<double> & xyz, double * lo, double * hi)
 {
-  if (unique.empty())
-  {
-    return false;
-  }
   for (unsigned int k = 0; k < 3; ++k)
   {
-    lo[k] = hi[k] = xyz[3 * unique[0] + k];
+    lo[k] = hi[k] = xyz[k];
   }
-  for (int32_t i : unique)
+  for (size_t i = 0; i < xyz.size() / 3; ++i)
   {
     for (unsigned int k = 0; k < 3; ++k)
     {
@@ -266,6 +261,18 @@ HullIsBoundingBox(const std::vector<double> & xyz, const std::vector<int32_t> & 
       hi[k] = std::max(hi[k], xyz[3 * i + k]);
     }
   }
+}
+
+/** Whether the convex hull of the distinct nodes `unique` is their bounding box [lo, hi] (its 8 corners are nodes,
+ * every extent positive), as for the dual mesh's nodes. The box is that of all the nodes: the others lie on them. */
+bool
+HullIsBoundingBox(const std::vector<double> & xyz, const std::vector<int32_t> & unique, double * lo, double * hi)
+{
+  if (unique.empty())
+  {
+    return false;
+  }
+  BoundingBox(xyz, lo, hi);
   bool corner[8] = {};
   for (int32_t i : unique)
   {
@@ -1022,8 +1029,10 @@ public:
       LineThroughFace(abc, d, e, negative, zero, edge);
       if (negative == 0 && zero == 0)
       {
-        Flip23(t, u, abc, d, e, queue);
-        ++stats.flips23;
+        if (Flip23(t, u, abc, d, e, queue))
+        {
+          ++stats.flips23;
+        }
         continue;
       }
       if (negative + zero != 1)
@@ -1061,6 +1070,36 @@ public:
   {
     std::copy(lo, lo + 3, m_Lo);
     std::copy(hi, hi + 3, m_Hi);
+  }
+
+  /** Six times the signed volume of the tetrahedron with these nodes. */
+  double
+  SixVolumeOf(const std::array<int32_t, 4> & t) const
+  {
+    double x[4][3];
+    for (int k = 0; k < 4; ++k)
+    {
+      x[k][0] = m_Points[t[k]].x();
+      x[k][1] = m_Points[t[k]].y();
+      x[k][2] = m_Points[t[k]].z();
+    }
+    return SixVolume(x[0], x[1], x[2], x[3]);
+  }
+
+  /** Whether the three nodes lie on one plane of the box. */
+  bool
+  OnOneBoxPlane(const std::array<int32_t, 3> & v) const
+  {
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      const double x = m_Points[v[0]][static_cast<int>(k)];
+      if ((x == m_Lo[k] || x == m_Hi[k]) && m_Points[v[1]][static_cast<int>(k)] == x &&
+          m_Points[v[2]][static_cast<int>(k)] == x)
+      {
+        return true;
+      }
+    }
+    return false;
   }
 
   /** Removes node j from a Delaunay tetrahedralization: its tetrahedra (the star) give way to the Delaunay tetrahedra
@@ -1129,6 +1168,14 @@ public:
         link.begin(), link.end(), key, [](const LinkFace & f, const std::array<int32_t, 3> & k) { return f.key < k; });
       return it != link.end() && it->key == key ? &*it : nullptr;
     };
+    // the sorted nodes of face k (opposite vertex k) of a finite cell
+    const auto cellFace = [](BlockTriangulation::Cell_handle c, int k) {
+      std::array<int32_t, 3> key = { c->vertex((k + 1) % 4)->info(),
+                                     c->vertex((k + 2) % 4)->info(),
+                                     c->vertex((k + 3) % 4)->info() };
+      std::sort(key.begin(), key.end());
+      return key;
+    };
     for (auto c = dt.all_cells_begin(); c != dt.all_cells_end(); ++c)
     {
       c->info() = 0;
@@ -1167,10 +1214,7 @@ public:
       const auto c = fill[m];
       for (int k = 0; k < 4; ++k)
       {
-        std::array<int32_t, 3> key = { c->vertex((k + 1) % 4)->info(),
-                                       c->vertex((k + 2) % 4)->info(),
-                                       c->vertex((k + 3) % 4)->info() };
-        std::sort(key.begin(), key.end());
+        const std::array<int32_t, 3> key = cellFace(c, k);
         if (LinkFace * f = linkFaceOf(key))
         {
           ++f->uses;
@@ -1226,13 +1270,10 @@ public:
       const auto c = fill[m];
       for (int k = 0; k < 4; ++k)
       {
-        std::array<int32_t, 3> key = { c->vertex((k + 1) % 4)->info(),
-                                       c->vertex((k + 2) % 4)->info(),
-                                       c->vertex((k + 3) % 4)->info() };
-        std::sort(key.begin(), key.end());
-        const LinkFace * f = linkFaceOf(key);
-        const auto       n = c->neighbor(k);
-        const int32_t    across = f ? f->outer : (n->info() >= 2 ? id[n->info() - 2] : -1);
+        const std::array<int32_t, 3> key = cellFace(c, k);
+        const LinkFace *             f = linkFaceOf(key);
+        const auto                   n = c->neighbor(k);
+        const int32_t                across = f ? f->outer : (n->info() >= 2 ? id[n->info() - 2] : -1);
         Attach(id[m], tetrahedra[m][k], across);
       }
       QueueFaces(id[m], queue);
@@ -1463,36 +1504,6 @@ private:
     return !star.empty();
   }
 
-  /** Six times the signed volume of the tetrahedron with these nodes. */
-  double
-  SixVolumeOf(const std::array<int32_t, 4> & t) const
-  {
-    double x[4][3];
-    for (int k = 0; k < 4; ++k)
-    {
-      x[k][0] = m_Points[t[k]].x();
-      x[k][1] = m_Points[t[k]].y();
-      x[k][2] = m_Points[t[k]].z();
-    }
-    return SixVolume(x[0], x[1], x[2], x[3]);
-  }
-
-  /** Whether the three nodes lie on one plane of the box. */
-  bool
-  OnOneBoxPlane(const std::array<int32_t, 3> & v) const
-  {
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      const double x = m_Points[v[0]][static_cast<int>(k)];
-      if ((x == m_Lo[k] || x == m_Hi[k]) && m_Points[v[1]][static_cast<int>(k)] == x &&
-          m_Points[v[2]][static_cast<int>(k)] == x)
-      {
-        return true;
-      }
-    }
-    return false;
-  }
-
   int
   IndexOf(int32_t t, int32_t v) const
   {
@@ -1616,6 +1627,14 @@ private:
     return id;
   }
 
+  /** Whether tetrahedron o (-1: none) has node v: a new tetrahedron attached to o across the face opposite v would
+   * then have o's four nodes. */
+  bool
+  HoldsNode(int32_t o, int32_t v) const
+  {
+    return o >= 0 && IndexOf(o, v) >= 0;
+  }
+
   /** The neighbour of old tetrahedron `from` opposite its vertex v (-1 on the box). */
   int32_t
   Across(int32_t from, int32_t v) const
@@ -1669,9 +1688,8 @@ private:
       FaceNodes(t, i, abc);
       int negative = 0, zero = 0, edge = -1;
       LineThroughFace(abc, d, e, negative, zero, edge);
-      if (negative == 0 && zero == 0)
+      if (negative == 0 && zero == 0 && Flip23(t, u, abc, d, e, queue))
       {
-        Flip23(t, u, abc, d, e, queue);
         ++stats.flips23;
         return true;
       }
@@ -1690,13 +1708,18 @@ private:
   }
 
   /** Tetrahedra (a, b, c, d) and (a, b, c, e) -> (a, b, e, d), (b, c, e, d), (c, a, e, d) around the edge de. */
-  void
+  bool
   Flip23(int32_t t, int32_t u, const int32_t * abc, int32_t d, int32_t e, std::vector<uint32_t> & queue)
   {
     const int32_t a = abc[0], b = abc[1], c = abc[2];
     // outer neighbours, read before the old tetrahedra are replaced
     const int32_t tA = Across(t, a), tB = Across(t, b), tC = Across(t, c);
     const int32_t uA = Across(u, a), uB = Across(u, b), uC = Across(u, c);
+    if (HoldsNode(tA, e) || HoldsNode(tB, e) || HoldsNode(tC, e) || HoldsNode(uA, d) || HoldsNode(uB, d) ||
+        HoldsNode(uC, d))
+    {
+      return false; // a new tetrahedron would be an outer one again (only where tetrahedra are tangled)
+    }
     Kill(t);
     Kill(u);
     const int32_t n1 = NewTetrahedron({ a, b, e, d }), n2 = NewTetrahedron({ b, c, e, d }),
@@ -1716,6 +1739,7 @@ private:
     QueueFaces(n1, queue);
     QueueFaces(n2, queue);
     QueueFaces(n3, queue);
+    return true;
   }
 
   /** The tetrahedra around the edge xy, (x, y, z, d), (x, y, z, e) and (x, y, d, e) (w; -1 for a 2-2 flip on the
@@ -1737,6 +1761,11 @@ private:
     }
     const int32_t tX = Across(t, x), tY = Across(t, y), uX = Across(u, x), uY = Across(u, y);
     const int32_t wX = Across(w, x), wY = Across(w, y);
+    if (HoldsNode(wX, z) || HoldsNode(uX, d) || HoldsNode(tX, e) || HoldsNode(wY, z) || HoldsNode(uY, d) ||
+        HoldsNode(tY, e))
+    {
+      return false; // a new tetrahedron would be an outer one again (only where tetrahedra are tangled)
+    }
     Kill(t);
     Kill(u);
     if (w >= 0)
@@ -1853,22 +1882,6 @@ BoxPlanes(const double * x, const double * lo, const double * hi)
   return planes;
 }
 
-void
-BoundingBox(const std::vector<double> & xyz, double * lo, double * hi)
-{
-  for (unsigned int k = 0; k < 3; ++k)
-  {
-    lo[k] = hi[k] = xyz[k];
-  }
-  for (size_t i = 0; i < xyz.size() / 3; ++i)
-  {
-    for (unsigned int k = 0; k < 3; ++k)
-    {
-      lo[k] = std::min(lo[k], xyz[3 * i + k]);
-      hi[k] = std::max(hi[k], xyz[3 * i + k]);
-    }
-  }
-}
 } // namespace
 
 namespace
@@ -1984,21 +1997,11 @@ Repair(const std::vector<double> &                 xyz,
       repair.Orient(begin, end, positive, tangled[c]);
       for (size_t t = begin; t < end; ++t)
       {
-        sixVolume[c] += SixVolume(&start[3 * v[t][0]], &start[3 * v[t][1]], &start[3 * v[t][2]], &start[3 * v[t][3]]);
+        sixVolume[c] += repair.SixVolumeOf(v[t]);
         for (unsigned int i = 0; i < 4; ++i)
         {
-          if (nb[t][i] >= 0)
-          {
-            continue;
-          }
-          bool onePlane = false;
-          for (unsigned int k = 0; k < 3 && !onePlane; ++k)
-          {
-            const double x = start[3 * v[t][(i + 1) % 4] + k];
-            onePlane = (x == lo[k] || x == hi[k]) && start[3 * v[t][(i + 2) % 4] + k] == x &&
-                       start[3 * v[t][(i + 3) % 4] + k] == x;
-          }
-          onBox[c] = onBox[c] && onePlane;
+          onBox[c] = onBox[c] && (nb[t][i] >= 0 ||
+                                  repair.OnOneBoxPlane({ v[t][(i + 1) % 4], v[t][(i + 2) % 4], v[t][(i + 3) % 4] }));
         }
       }
       if (onBox[c])
