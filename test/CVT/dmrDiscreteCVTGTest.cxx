@@ -24,6 +24,7 @@
 #include <iostream>
 #include <limits>
 
+#include <numeric>
 #include <random>
 #include <set>
 #include <sys/resource.h>
@@ -231,6 +232,190 @@ TEST(DiscreteCVT, ContractionGivesCompactConnectedCells)
   const auto reference = ComputeCellStatistics<2>(grid, density.data(), cvt.GetLabels(), 12);
   EXPECT_NEAR(cvt.GetEnergy(), reference.energy, 1e-9 * reference.energy);
   EXPECT_NEAR(cvt.BruteForceEnergy(), reference.energy, 1e-9 * reference.energy);
+}
+
+/** The contraction as the paper states it, with nothing kept between merges: every block's sums in pixel order, then
+ * merges of the adjacent pair with the least (cost, lower id, higher id) over all pairs, found by a scan of them all;
+ * the cluster with more neighbours (ties: the lower id) absorbs the other; labels numbered by first appearance in
+ * block order. */
+template <unsigned int D>
+std::vector<int32_t>
+ReferenceContraction(const itk::dmr::Grid<D> & grid, const std::vector<float> & density, size_t cells, size_t block)
+{
+  std::array<size_t, D> nb;
+  size_t                blocks = 1;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    nb[k] = (grid.size[k] + block - 1) / block;
+    blocks *= nb[k];
+  }
+  std::vector<size_t>            blockOf(grid.numberOfPixels);
+  std::vector<double>            mass(blocks, 0.0), centroid(blocks * D, 0.0);
+  std::vector<std::set<int32_t>> adjacent(blocks);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    size_t rest = p, b = 0, bstride = 1;
+    double x[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const size_t ik = rest % grid.size[k];
+      rest /= grid.size[k];
+      x[k] = static_cast<double>(ik) * grid.spacing[k];
+      b += (ik / block) * bstride;
+      bstride *= nb[k];
+    }
+    blockOf[p] = b;
+    const double w = density[p];
+    mass[b] += w;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      centroid[b * D + k] += w * x[k];
+    }
+  }
+  for (size_t b = 0; b < blocks; ++b)
+  {
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      centroid[b * D + k] /= mass[b];
+    }
+    size_t rest = b, bstride = 1;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      const size_t ik = rest % nb[k];
+      rest /= nb[k];
+      if (ik + 1 < nb[k])
+      {
+        adjacent[b].insert(static_cast<int32_t>(b + bstride));
+        adjacent[b + bstride].insert(static_cast<int32_t>(b));
+      }
+      bstride *= nb[k];
+    }
+  }
+  std::vector<int32_t> parent(blocks);
+  std::iota(parent.begin(), parent.end(), 0);
+  for (size_t clusters = blocks; clusters > cells; --clusters)
+  {
+    double  best = std::numeric_limits<double>::infinity();
+    int32_t lo = -1, hi = -1;
+    for (int32_t a = 0; a < static_cast<int32_t>(blocks); ++a)
+    {
+      for (const int32_t b : adjacent[a])
+      {
+        if (b > a)
+        {
+          const double c = itk::dmr::ContractionCost<D>(mass[a], &centroid[a * D], mass[b], &centroid[b * D]);
+          if (c < best || (c == best && (a < lo || (a == lo && b < hi))))
+          {
+            best = c;
+            lo = a;
+            hi = b;
+          }
+        }
+      }
+    }
+    int32_t keep = lo, gone = hi;
+    if (adjacent[gone].size() > adjacent[keep].size())
+    {
+      std::swap(keep, gone);
+    }
+    const double m = mass[keep] + mass[gone];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      centroid[keep * D + k] = (mass[keep] * centroid[keep * D + k] + mass[gone] * centroid[gone * D + k]) / m;
+    }
+    mass[keep] = m;
+    for (const int32_t n : adjacent[gone])
+    {
+      adjacent[n].erase(gone);
+      if (n != keep)
+      {
+        adjacent[n].insert(keep);
+        adjacent[keep].insert(n);
+      }
+    }
+    adjacent[keep].erase(gone);
+    adjacent[gone].clear();
+    parent[gone] = keep;
+  }
+  std::vector<int32_t> compact(blocks, -1), labels(grid.numberOfPixels);
+  int32_t              next = 0;
+  std::vector<int32_t> blockLabel(blocks);
+  for (size_t b = 0; b < blocks; ++b)
+  {
+    int32_t root = static_cast<int32_t>(b);
+    while (parent[root] != root)
+    {
+      root = parent[root];
+    }
+    if (compact[root] < 0)
+    {
+      compact[root] = next++;
+    }
+    blockLabel[b] = compact[root];
+  }
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    labels[p] = blockLabel[blockOf[p]];
+  }
+  return labels;
+}
+
+template <unsigned int D>
+void
+ExpectContractionEqualsTheReference(const itk::dmr::Grid<D> &  grid,
+                                    const std::vector<float> & density,
+                                    size_t                     cells,
+                                    unsigned int               block)
+{
+  SCOPED_TRACE(std::to_string(D) + "D, " + std::to_string(cells) + " cells from blocks of " + std::to_string(block));
+  const auto               threader = itk::dmr::test::Threader(2, 2);
+  itk::dmr::DiscreteCVT<D> cvt;
+  cvt.SetDensity(grid, density.data(), threader);
+  cvt.ContractionInitialize(cells, block);
+  const auto   reference = ReferenceContraction<D>(grid, density, cells, block);
+  const auto & labels = cvt.GetLabels();
+  EXPECT_TRUE(std::equal(labels.begin(), labels.end(), reference.begin(), reference.end()));
+}
+
+TEST(DiscreteCVT, ContractionMergesTheLeastPairOfAllFirst)
+{
+  // random densities, a flat one (every cost ties with its mirror image: the ids decide) and one of a few levels
+  const itk::dmr::Grid<2> grid2(std::array<size_t, 2>{ 23, 19 }, std::array<double, 2>{ 1.0, 1.7 });
+  const itk::dmr::Grid<3> grid3(std::array<size_t, 3>{ 9, 8, 7 }, std::array<double, 3>{ 1.0, 1.0, 2.0 });
+  for (uint32_t seed = 1; seed <= 3; ++seed)
+  {
+    const auto random2 = itk::dmr::test::RandomDensity(grid2.numberOfPixels, seed);
+    const auto random3 = itk::dmr::test::RandomDensity(grid3.numberOfPixels, seed + 10);
+    for (const size_t cells : { size_t{ 1 }, size_t{ 7 }, size_t{ 40 } })
+    {
+      ExpectContractionEqualsTheReference<2>(grid2, random2, cells, 1);
+      ExpectContractionEqualsTheReference<3>(grid3, random3, cells, 1);
+    }
+    ExpectContractionEqualsTheReference<2>(grid2, random2, 12, 2);
+    ExpectContractionEqualsTheReference<3>(grid3, random3, 12, 2);
+  }
+  for (const bool flat : { true, false })
+  {
+    std::vector<float> d2(grid2.numberOfPixels, 0.5f), d3(grid3.numberOfPixels, 0.5f);
+    if (!flat)
+    {
+      for (size_t p = 0; p < d2.size(); ++p)
+      {
+        d2[p] = 0.25f + 0.25f * static_cast<float>((p / 5) % 3);
+      }
+      for (size_t p = 0; p < d3.size(); ++p)
+      {
+        d3[p] = 0.25f + 0.25f * static_cast<float>((p / 4) % 3);
+      }
+    }
+    for (const size_t cells : { size_t{ 5 }, size_t{ 30 } })
+    {
+      ExpectContractionEqualsTheReference<2>(grid2, d2, cells, 1);
+      ExpectContractionEqualsTheReference<3>(grid3, d3, cells, 1);
+    }
+    ExpectContractionEqualsTheReference<2>(grid2, d2, 9, 2);
+    ExpectContractionEqualsTheReference<3>(grid3, d3, 9, 2);
+  }
 }
 
 // a cell of zero mass has no centroid (the contraction's costs would be NaN): such a density is refused up front
