@@ -939,8 +939,9 @@ CellRangeKernel(const uint32_t * sortedLabels, int32_t n, int32_t * start, int32
 }
 
 /** One warp per cell: mass and centroid summed over the cell's pixels in pixel order, the order of
- * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and form their terms (w, w x) in parallel; every lane
- * then adds the 32 terms in order (broadcast by shuffles), so the sums are the sequential ones. */
+ * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and store their terms (w, w x) in shared memory; lane k
+ * (k <= D) then adds component k of the 32 terms in order, so the sums are the sequential ones. (Broadcasting every
+ * term to all lanes by shuffles gave the same sums with D + 1 shuffles per term, which bounded the kernel.) */
 template <unsigned int D>
 __global__ void
 CellStatisticsKernel(GridParams         g,
@@ -954,15 +955,14 @@ CellStatisticsKernel(GridParams         g,
                      StatisticsReport * report)
 {
   constexpr unsigned int all = 0xffffffffu;
-  const int32_t          lane = static_cast<int32_t>(threadIdx.x & 31u);
-  const int32_t          warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
+  // a row of 33: the D + 1 summing lanes read distinct banks
+  __shared__ double terms[Threads / 32][D + 1][33];
+  const int32_t     lane = static_cast<int32_t>(threadIdx.x & 31u);
+  double(*const term)[33] = terms[threadIdx.x / 32];
+  const int32_t warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
   for (int32_t c = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); c < nCells; c += warps)
   {
-    double m = 0.0, s[D];
-    for (unsigned int k = 0; k < D; ++k)
-    {
-      s[k] = 0.0;
-    }
+    double        sum = 0.0; // lane 0: the mass; lane 1 + k: the first moment along axis k
     const int32_t end = stop[c];
     for (int32_t base = start[c]; base < end; base += 32)
     {
@@ -985,15 +985,27 @@ CellStatisticsKernel(GridParams         g,
           wx[k] = wf * x[k];
         }
       }
-      const int32_t n = min(32, end - base);
-      for (int32_t j = 0; j < n; ++j)
+      term[0][lane] = w;
+      for (unsigned int k = 0; k < D; ++k)
       {
-        m += __shfl_sync(all, w, j);
-        for (unsigned int k = 0; k < D; ++k)
+        term[1 + k][lane] = wx[k];
+      }
+      __syncwarp();
+      if (lane <= static_cast<int32_t>(D))
+      {
+        const int32_t n = min(32, end - base);
+        for (int32_t j = 0; j < n; ++j)
         {
-          s[k] += __shfl_sync(all, wx[k], j);
+          sum += term[lane][j];
         }
       }
+      __syncwarp();
+    }
+    const double m = __shfl_sync(all, sum, 0);
+    double       s[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      s[k] = __shfl_sync(all, sum, 1 + k);
     }
     if (lane == 0)
     {
