@@ -332,6 +332,73 @@ TEST(CVTCuda, DeviceLabelsFeedAnotherOptimizerAndBadLabelsAreReported)
   EXPECT_EQ(fresh.DeviceLabels(), nullptr);
 }
 
+/** The contraction with its block sums and labels on the device and its merges on the host (as the registration's
+ * CUDA path makes it) against DiscreteCVT::ContractionInitialize: the same labels, masses and centroids, bit for bit
+ * (the energy is summed in another order on each side). Sizes that are not multiples of the block size cut the last
+ * blocks. */
+template <unsigned int D>
+void
+ExpectDeviceContractionEqualsTheCpu(const itk::dmr::Grid<D> & grid, size_t cells, unsigned int blockSize)
+{
+  SCOPED_TRACE(std::to_string(D) + "D, " + std::to_string(cells) + " cells from blocks of " +
+               std::to_string(blockSize));
+  std::array<double, D> centre;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    centre[k] = 0.3 * static_cast<double>(grid.size[k]) * grid.spacing[k];
+  }
+  const auto               density = BumpAndRing<D>(grid, centre);
+  itk::dmr::DiscreteCVT<D> cpu;
+  cpu.SetDensity(grid, density.data(), nullptr);
+  cpu.ContractionInitialize(cells, blockSize);
+
+  CVTSwapOptimizer gpu;
+  ASSERT_TRUE(Ok(gpu.SetGrid(D, grid.size.data(), grid.spacing.data())));
+  ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
+  std::vector<double> blockMass, blockCentroid;
+  ASSERT_TRUE(Ok(gpu.ContractionBlockSums(blockSize, blockMass, blockCentroid)));
+  std::array<size_t, D> nb;
+  size_t                blocks = 1;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    nb[k] = (grid.size[k] + blockSize - 1) / blockSize;
+    blocks *= nb[k];
+  }
+  ASSERT_EQ(blockMass.size(), blocks);
+  ASSERT_EQ(blockCentroid.size(), blocks * D);
+  size_t     made = 0;
+  const auto blockLabel =
+    itk::dmr::DiscreteCVT<D>::ContractBlocks(nb, blockMass.data(), blockCentroid.data(), cells, {}, made);
+  EXPECT_EQ(made, cells);
+  ASSERT_TRUE(Ok(gpu.SetBlockLabels(blockSize, blockLabel.data(), cells)));
+  std::vector<int32_t> labels(grid.numberOfPixels);
+  ASSERT_TRUE(Ok(gpu.DownloadLabels(labels.data())));
+  EXPECT_EQ(CountDifferent(labels, cpu.GetLabels()), 0u);
+  std::vector<double> masses, centroids;
+  ASSERT_TRUE(Ok(gpu.GetCells(masses, centroids)));
+  EXPECT_EQ(masses, cpu.GetMasses());
+  EXPECT_EQ(centroids, cpu.GetCentroids());
+  EXPECT_NEAR(gpu.Energy(), cpu.GetEnergy(), 1e-10 * cpu.GetEnergy());
+}
+
+TEST(CVTCuda, ContractionWithDeviceBlockSumsEqualsTheCpuContraction)
+{
+  DMR_SKIP_WITHOUT_DEVICE();
+  const itk::dmr::Grid<2> grid2(std::array<size_t, 2>{ 61, 45 }, std::array<double, 2>{ 1.0, 1.7 });
+  const itk::dmr::Grid<3> grid3(std::array<size_t, 3>{ 30, 27, 13 }, std::array<double, 3>{ 0.9, 1.0, 2.5 });
+  for (const unsigned int blockSize : { 1u, 2u, 4u })
+  {
+    ExpectDeviceContractionEqualsTheCpu<2>(grid2, 25, blockSize);
+    ExpectDeviceContractionEqualsTheCpu<3>(grid3, 40, blockSize);
+  }
+  CVTSwapOptimizer    gpu;
+  std::vector<double> m, c;
+  EXPECT_FALSE(gpu.ContractionBlockSums(4, m, c).Ok()) << "no grid";
+  ASSERT_TRUE(Ok(gpu.SetGrid(2, grid2.size.data(), grid2.spacing.data())));
+  EXPECT_FALSE(gpu.ContractionBlockSums(4, m, c).Ok()) << "no density";
+  EXPECT_FALSE(gpu.SetBlockLabels(1, nullptr, 3).Ok());
+}
+
 TEST(CVTCuda, FilterDispatchesToTheGpuWithTheCpuResult)
 {
   DMR_SKIP_WITHOUT_DEVICE();

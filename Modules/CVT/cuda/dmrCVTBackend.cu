@@ -1022,6 +1022,86 @@ CellStatisticsKernel(GridParams         g,
   }
 }
 
+/** The blocks of the contraction's start (DiscreteCVT::ContractionInitialize): blockSize pixels per axis, nb per axis
+ * (axis 0 fastest), the last ones cut at the grid's end. */
+struct BlockGrid
+{
+  int32_t blockSize;
+  int32_t nb[3];
+  int32_t numberOfBlocks;
+};
+
+/** One thread per block: its mass and first moments summed over its pixels in pixel order, as the CPU sums them (the
+ * same products and additions in the same order), then its centroid. */
+template <unsigned int D>
+__global__ void
+BlockSumsKernel(GridParams g, BlockGrid bg, const float * density, double * mass, double * centroid)
+{
+  for (int32_t b = blockIdx.x * blockDim.x + threadIdx.x; b < bg.numberOfBlocks; b += gridDim.x * blockDim.x)
+  {
+    int32_t lo[3] = { 0, 0, 0 }, hi[3] = { 1, 1, 1 };
+    int32_t rest = b;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      lo[k] = (rest % bg.nb[k]) * bg.blockSize;
+      rest /= bg.nb[k];
+      hi[k] = min(g.size[k], lo[k] + bg.blockSize);
+    }
+    double m = 0.0, moment[D];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      moment[k] = 0.0;
+    }
+    for (int32_t z = lo[2]; z < hi[2]; ++z)
+    {
+      for (int32_t y = lo[1]; y < hi[1]; ++y)
+      {
+        const int32_t row = y * g.stride[1] + (D == 3 ? z * g.stride[2] : 0);
+        double        x[D];
+        x[1] = static_cast<double>(y) * g.spacing[1];
+        if (D == 3)
+        {
+          x[D - 1] = static_cast<double>(z) * g.spacing[D - 1];
+        }
+        for (int32_t i = lo[0]; i < hi[0]; ++i)
+        {
+          x[0] = static_cast<double>(i) * g.spacing[0];
+          const double w = density[row + i];
+          m += w;
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            moment[k] += w * x[k];
+          }
+        }
+      }
+    }
+    mass[b] = m;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      centroid[b * D + k] = moment[k] / m;
+    }
+  }
+}
+
+/** Every pixel takes its block's label. */
+template <unsigned int D>
+__global__ void
+BlockLabelsKernel(GridParams g, BlockGrid bg, const int32_t * blockLabel, int32_t * labels)
+{
+  for (int32_t p = blockIdx.x * blockDim.x + threadIdx.x; p < g.numberOfPixels; p += gridDim.x * blockDim.x)
+  {
+    int32_t idx[D];
+    IndexOf<D>(g, p, idx);
+    int32_t b = 0, stride = 1;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      b += (idx[k] / bg.blockSize) * stride;
+      stride *= bg.nb[k];
+    }
+    labels[p] = blockLabel[b];
+  }
+}
+
 /** Energy, paper Eq. 10: fixed grid of EnergyBlocks blocks, each a partial sum (deterministic shape). */
 template <unsigned int D>
 __global__ void
@@ -1156,6 +1236,26 @@ struct CVTSwapOptimizer::Impl
     {
       throw CudaError("CVTSwapOptimizer: SetGrid must be called first (dimension 2 or 3)");
     }
+  }
+
+  BlockGrid
+  BlockGridOf(unsigned int blockSize) const
+  {
+    RequireGrid();
+    if (blockSize < 1)
+    {
+      throw CudaError("CVTSwapOptimizer: the block size must be at least 1");
+    }
+    BlockGrid bg{};
+    bg.blockSize = static_cast<int32_t>(blockSize);
+    size_t n = 1;
+    for (unsigned int k = 0; k < 3; ++k)
+    {
+      bg.nb[k] = k < dimension ? (grid.size[k] + bg.blockSize - 1) / bg.blockSize : 1;
+      n *= static_cast<size_t>(bg.nb[k]);
+    }
+    bg.numberOfBlocks = static_cast<int32_t>(n);
+    return bg;
   }
 
   void
@@ -1929,6 +2029,74 @@ CVTSwapOptimizer::KeepLabels(size_t numberOfCells)
       throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
     }
     m.Recompute(numberOfCells);
+  });
+}
+
+Status
+CVTSwapOptimizer::ContractionBlockSums(unsigned int          blockSize,
+                                       std::vector<double> & masses,
+                                       std::vector<double> & centroids)
+{
+  return Guard([&] {
+    Impl &          m = *m_Impl;
+    const BlockGrid bg = m.BlockGridOf(blockSize);
+    if (!m.density)
+    {
+      throw CudaError("CVTSwapOptimizer: no density (SetDensity)");
+    }
+    const size_t         n = static_cast<size_t>(bg.numberOfBlocks);
+    DeviceBuffer<double> mass(n), centroid(n * m.dimension);
+    const int            blocks = static_cast<int>(std::min<size_t>((n + Threads - 1) / Threads, 65535));
+    if (m.dimension == 2)
+    {
+      BlockSumsKernel<2><<<blocks, Threads, 0, m.stream>>>(m.grid, bg, m.density, mass.Data(), centroid.Data());
+    }
+    else
+    {
+      BlockSumsKernel<3><<<blocks, Threads, 0, m.stream>>>(m.grid, bg, m.density, mass.Data(), centroid.Data());
+    }
+    CheckLaunch("BlockSumsKernel");
+    masses.resize(n);
+    centroids.resize(n * m.dimension);
+    mass.Download(masses.data(), n, m.stream);
+    centroid.Download(centroids.data(), n * m.dimension, m.stream);
+    Check(cudaStreamSynchronize(m.stream), "block sums (synchronise)");
+  });
+}
+
+Status
+CVTSwapOptimizer::SetBlockLabels(unsigned int blockSize, const int32_t * blockLabels, size_t numberOfCells)
+{
+  return Guard([&] {
+    Impl &          m = *m_Impl;
+    const BlockGrid bg = m.BlockGridOf(blockSize);
+    if (!blockLabels)
+    {
+      throw CudaError("CVTSwapOptimizer: null block labels");
+    }
+    DeviceBuffer<int32_t> blockLabel(static_cast<size_t>(bg.numberOfBlocks));
+    blockLabel.Upload(blockLabels, static_cast<size_t>(bg.numberOfBlocks), m.stream);
+    m.hasLabels = false;
+    if (m.dimension == 2)
+    {
+      BlockLabelsKernel<2><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
+    }
+    else
+    {
+      BlockLabelsKernel<3><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
+    }
+    CheckLaunch("BlockLabelsKernel");
+    Check(cudaStreamSynchronize(m.stream), "block labels (synchronise)");
+    m.hasLabels = true;
+    try
+    {
+      m.Recompute(numberOfCells);
+    }
+    catch (...)
+    {
+      m.hasLabels = false;
+      throw;
+    }
   });
 }
 

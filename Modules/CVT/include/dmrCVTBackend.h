@@ -83,6 +83,15 @@ public:
   /** Warm start: keeps the labels already on the device and recomputes the statistics (for a new density). */
   Status
   KeepLabels(size_t numberOfCells);
+  /** The data-parallel ends of the contraction (dmr::DiscreteCVT::ContractionInitialize) on the device, around its
+   * merges on the host (dmr::DiscreteCVT::ContractBlocks): the masses and centroids (grid frame, D interleaved) of the
+   * blockSize^D blocks of the density (axis 0 fastest, the last ones cut at the grid's end), each summed in pixel order
+   * as the CPU sums it; then the labels from one label per block, with the statistics as SetLabels. The density and
+   * the labels stay on the device. */
+  Status
+  ContractionBlockSums(unsigned int blockSize, std::vector<double> & masses, std::vector<double> & centroids);
+  Status
+  SetBlockLabels(unsigned int blockSize, const int32_t * blockLabels, size_t numberOfCells);
   /** Sweeps until a sweep commits nothing or lowers the energy by no more than epsilon x E, or
    * maximumNumberOfSweeps sweeps (dmr::DiscreteCVT<D>::Optimize). */
   Status

@@ -260,20 +260,8 @@ public:
       itkGenericExceptionMacro("DiscreteCVT: cannot make " << numberOfCells << " cells from " << numberOfBlocks
                                                            << " pixels/blocks");
     }
-    struct Cluster
-    {
-      double   mass;
-      double   centroid[D]; // the first moment, until the blocks are summed
-      size_t   first;       // its links are link[first, first + count), with room for capacity
-      uint32_t count;
-      uint32_t capacity;
-    };
-    struct Link
-    {
-      double  cost;
-      int32_t to;
-    };
-    std::vector<Cluster> cluster(numberOfBlocks);
+    // block masses and centroids (first moments until the blocks are summed)
+    std::vector<double> masses(numberOfBlocks, 0.0), centroids(numberOfBlocks * D, 0.0);
 
     // Block masses and centroids. The pixels are visited row by row (a row: the size[0] pixels along axis 0, in runs
     // of one block each), with no division per pixel. A slab (blockSize pixel planes across the last axis) holds
@@ -305,10 +293,9 @@ public:
       forEachRun(slab, [&](size_t b, const IndexType & idx, size_t rowStart, size_t i, size_t end) {
         double x[D];
         Position(idx, x);
-        Cluster & c = cluster[b];
-        double    mass = c.mass;
-        double    moment[D];
-        std::copy_n(c.centroid, D, moment);
+        double mass = masses[b];
+        double moment[D];
+        std::copy_n(&centroids[b * D], D, moment);
         for (; i < end; ++i)
         {
           x[0] = static_cast<double>(i) * m_Grid.spacing[0];
@@ -319,17 +306,72 @@ public:
             moment[k] += w * x[k];
           }
         }
-        c.mass = mass;
-        std::copy_n(moment, D, c.centroid);
+        masses[b] = mass;
+        std::copy_n(moment, D, &centroids[b * D]);
       });
       for (size_t b = slab * slabBlocks; b < (slab + 1) * slabBlocks; ++b)
       {
         for (unsigned int k = 0; k < D; ++k)
         {
-          cluster[b].centroid[k] /= cluster[b].mass;
+          centroids[b * D + k] /= masses[b];
         }
       }
     });
+    size_t     next = 0;
+    const auto blockLabel = ContractBlocks(nb, masses.data(), centroids.data(), numberOfCells, m_Checkpoint, next);
+    ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
+      forEachRun(slab, [&](size_t b, const IndexType &, size_t rowStart, size_t i, size_t end) {
+        std::fill(m_Labels.begin() + rowStart + i, m_Labels.begin() + rowStart + end, blockLabel[b]);
+      });
+    });
+    RecomputeStatistics(next);
+  }
+
+  /** The merges of the greedy least-cost pair contraction (see ContractionInitialize) on a grid of nb blocks per axis
+   * (axis 0 fastest), from their masses and centroids (grid frame, D interleaved; masses positive): the label of every
+   * block, 0..numberOfCells-1 numbered by first appearance in block order, and in numberOfLabels how many there are
+   * (numberOfCells, or fewer where the blocks do not connect). checkpoint (may be empty) is called with the fraction
+   * of the merges done before every 65536th merge. Used by ContractionInitialize, and by the CUDA back-end with block
+   * sums made on the device. */
+  static std::vector<int32_t>
+  ContractBlocks(const std::array<size_t, D> &       nb,
+                 const double *                      masses,
+                 const double *                      centroids,
+                 size_t                              numberOfCells,
+                 const std::function<void(double)> & checkpoint,
+                 size_t &                            numberOfLabels)
+  {
+    std::array<size_t, D> bstride;
+    size_t                numberOfBlocks = 1;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      bstride[k] = numberOfBlocks;
+      numberOfBlocks *= nb[k];
+    }
+    if (numberOfCells < 1 || numberOfCells > numberOfBlocks)
+    {
+      itkGenericExceptionMacro("DiscreteCVT: cannot make " << numberOfCells << " cells from " << numberOfBlocks
+                                                           << " pixels/blocks");
+    }
+    struct Cluster
+    {
+      double   mass;
+      double   centroid[D];
+      size_t   first; // its links are link[first, first + count), with room for capacity
+      uint32_t count;
+      uint32_t capacity;
+    };
+    struct Link
+    {
+      double  cost;
+      int32_t to;
+    };
+    std::vector<Cluster> cluster(numberOfBlocks);
+    for (size_t b = 0; b < numberOfBlocks; ++b)
+    {
+      cluster[b].mass = masses[b];
+      std::copy_n(centroids + b * D, D, cluster[b].centroid);
+    }
     auto cost = [&](int32_t a, int32_t b) {
       const Cluster & lo = cluster[std::min(a, b)];
       const Cluster & hi = cluster[std::max(a, b)];
@@ -480,9 +522,9 @@ public:
     const size_t merges = numberOfBlocks - numberOfCells;
     while (clusters > numberOfCells && !heap.empty())
     {
-      if (m_Checkpoint && ((numberOfBlocks - clusters) & 0xFFFF) == 0)
+      if (checkpoint && ((numberOfBlocks - clusters) & 0xFFFF) == 0)
       {
-        m_Checkpoint(static_cast<double>(numberOfBlocks - clusters) / static_cast<double>(merges));
+        checkpoint(static_cast<double>(numberOfBlocks - clusters) / static_cast<double>(merges));
       }
       // keep the cluster with the longer adjacency list, merge the other into it
       int32_t keep = heap[0].Low(), gone = heap[0].High();
@@ -593,12 +635,8 @@ public:
       }
       blockLabel[b] = compact[root];
     }
-    ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
-      forEachRun(slab, [&](size_t b, const IndexType &, size_t rowStart, size_t i, size_t end) {
-        std::fill(m_Labels.begin() + rowStart + i, m_Labels.begin() + rowStart + end, blockLabel[b]);
-      });
-    });
-    RecomputeStatistics(static_cast<size_t>(next));
+    numberOfLabels = static_cast<size_t>(next);
+    return blockLabel;
   }
 
   /** Warm start (paper 4.7): take a given labelling with labels 0..numberOfCells-1. */

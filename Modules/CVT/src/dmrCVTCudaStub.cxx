@@ -66,6 +66,18 @@ CVTSwapOptimizer::KeepLabels(size_t)
 }
 
 Status
+CVTSwapOptimizer::ContractionBlockSums(unsigned int, std::vector<double> &, std::vector<double> &)
+{
+  return Unavailable();
+}
+
+Status
+CVTSwapOptimizer::SetBlockLabels(unsigned int, const int32_t *, size_t)
+{
+  return Unavailable();
+}
+
+Status
 CVTSwapOptimizer::Optimize(double, size_t, CVTSwapResult &)
 {
   return Unavailable();

@@ -1025,12 +1025,10 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   }
   m_Timing.registration += seconds(t0, Clock::now());
 
-  std::vector<double> nodalForce, nodalU, nodalW;
-  // host copy of the density for the initial contraction (CPU), then released
-  typename DensityImageType::Pointer density;
-  dmr::cuda::CVTSwapOptimizer        cvt;
-  dmr::cuda::LabelSummarizer         summarizer;
-  dmr::LabelSummary                  summary;
+  std::vector<double>         nodalForce, nodalU, nodalW;
+  dmr::cuda::CVTSwapOptimizer cvt;
+  dmr::cuda::LabelSummarizer  summarizer;
+  dmr::LabelSummary           summary;
 
   // the elastic system of a mesh: on the device when it is large enough (no assembly on the CPU), otherwise
   // assembled on the CPU; hostAssembled says whether m_Solver holds the current mesh's K
@@ -1110,30 +1108,50 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       t0 = Clock::now();
       if (it == 1 || reinitialize)
       {
-        // initial tessellation (contraction) on the CPU: the one full-volume download of the density; the filter
-        // only contracts (SwapOptimization off), the swaps run on this run's device optimiser from the contraction's
-        // labels, as the CPU path's sweeps run from the contraction's state (so both update the same sums)
-        if (density.IsNull())
-        {
-          density = DensityImageType::New();
-          density->CopyInformation(fixed);
-          density->SetRegions(fixed->GetLargestPossibleRegion());
-          density->Allocate();
-        }
-        dmr::ThrowOnError(context.DownloadDensity(density->GetBufferPointer()), "density download");
-        density->Modified();
-        m_CVTFilter->SetInput(density);
-        m_CVTFilter->SetInitialLabels(nullptr);
-        m_CVTFilter->Update();
-        m_Timing.initialTessellation += m_CVTFilter->GetInitializationTime();
-        const auto * labels = m_CVTFilter->GetOutput();
+        // initial tessellation (contraction, paper 4.4): the block sums and the labels on the device, the greedy
+        // merges of the blocks on the CPU (dmr::DiscreteCVT::ContractBlocks, the CPU path's merges, so both back-ends
+        // start from the same labels); the swaps then run on this run's device optimiser from the contraction's
+        // labels, as the CPU path's sweeps run from the contraction's state. Only the block sums and labels cross.
         dmr::ThrowOnError(cvt.SetGrid(D, grid.size.data(), grid.spacing.data()), "CVT grid");
         dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
-        dmr::ThrowOnError(cvt.SetLabels(labels->GetBufferPointer(), m_NumberOfNodes, false), "CVT labels");
-        m_CVTFilter->GetOutput()->ReleaseData();
-        density = nullptr;
-        m_Timing.tessellationOptimization +=
-          std::max(0.0, seconds(t0, Clock::now()) - m_CVTFilter->GetInitializationTime());
+        unsigned int          blockSize = std::max(1u, m_CVTFilter->GetBlockSize());
+        std::array<size_t, D> nb;
+        size_t                numberOfBlocks = 1;
+        const auto            blocksOf = [&](unsigned int size) {
+          numberOfBlocks = 1;
+          for (unsigned int k = 0; k < D; ++k)
+          {
+            nb[k] = (grid.size[k] + size - 1) / size;
+            numberOfBlocks *= nb[k];
+          }
+        };
+        blocksOf(blockSize);
+        if (m_NumberOfNodes > numberOfBlocks && blockSize > 1) // as DiscreteCVT::ContractionInitialize
+        {
+          blockSize = 1;
+          blocksOf(blockSize);
+        }
+        std::vector<double> blockMass, blockCentroid;
+        dmr::ThrowOnError(cvt.ContractionBlockSums(blockSize, blockMass, blockCentroid), "contraction");
+        size_t     numberOfLabels = 0;
+        const auto blockLabel = dmr::DiscreteCVT<D>::ContractBlocks(
+          nb,
+          blockMass.data(),
+          blockCentroid.data(),
+          m_NumberOfNodes,
+          [this](double) {
+            // as the CPU path's CVT filter: progress within the merges, and a stop on AbortGenerateData
+            this->UpdateProgress(this->GetProgress());
+            if (this->GetAbortGenerateData())
+            {
+              ProcessAborted aborted(__FILE__, __LINE__);
+              aborted.SetDescription("FEMRegistrationMethod: AbortGenerateData was set (contraction)");
+              throw aborted;
+            }
+          },
+          numberOfLabels);
+        dmr::ThrowOnError(cvt.SetBlockLabels(blockSize, blockLabel.data(), m_NumberOfNodes), "CVT labels");
+        m_Timing.initialTessellation += seconds(t0, Clock::now());
       }
       else
       {
