@@ -254,7 +254,11 @@ TEST(Landmarks, SyntheticFieldGivesKnownTRE)
     }
     itk::Point<double, 3> p;
     field->TransformContinuousIndexToPhysicalPoint(c, p);
-    itk::Vector<double, 3> dir = dmrtest::Vec(unit(engine) - 0.5, unit(engine) - 0.5, unit(engine) - 0.5);
+    // one draw per statement: the order of a call's arguments is unspecified, so the input would depend on the compiler
+    const double           dx = unit(engine) - 0.5;
+    const double           dy = unit(engine) - 0.5;
+    const double           dz = unit(engine) - 0.5;
+    itk::Vector<double, 3> dir = dmrtest::Vec(dx, dy, dz);
     dir.Normalize();
     const itk::Point<double, 3> q = p + u(p) + dir * (0.1 * i);
     fixed.push_back(p);

@@ -698,7 +698,11 @@ JumpNodes(std::vector<double> xyz, const double (&side)[3], double h, int count,
       {
         for (unsigned int k = 0; k < 3; ++k)
         {
-          x[k] += h * (1.0 + std::abs(u(rng))) * (u(rng) < 0.0 ? -1.0 : 1.0) / std::sqrt(3.0);
+          // two draws in two statements: in one expression their order is unspecified, and the test's input would
+          // depend on the compiler and its flags
+          const double length = 1.0 + std::abs(u(rng));
+          const double sign = u(rng) < 0.0 ? -1.0 : 1.0;
+          x[k] += h * length * sign / std::sqrt(3.0);
         }
         ++jumped;
       }
