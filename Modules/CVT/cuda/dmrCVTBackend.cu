@@ -1238,6 +1238,27 @@ struct CVTSwapOptimizer::Impl
     }
   }
 
+  /** New labels for the whole grid, written on the stream by fill; then the statistics (Recompute). The labels count
+   * as absent from the start until Recompute has accepted them. */
+  template <typename TFill>
+  void
+  ReplaceLabels(size_t numberOfCells, TFill && fill)
+  {
+    hasLabels = false;
+    fill();
+    Check(cudaStreamSynchronize(stream), "labels (synchronise)");
+    hasLabels = true;
+    try
+    {
+      Recompute(numberOfCells);
+    }
+    catch (...)
+    {
+      hasLabels = false; // the new labels are invalid
+      throw;
+    }
+  }
+
   BlockGrid
   BlockGridOf(unsigned int blockSize) const
   {
@@ -1993,24 +2014,14 @@ CVTSwapOptimizer::SetLabels(const int32_t * labels, size_t numberOfCells, bool d
     {
       throw CudaError("CVTSwapOptimizer: null labels");
     }
-    m.hasLabels = false;
-    Check(cudaMemcpyAsync(m.labels.Data(),
-                          labels,
-                          m.numberOfPixels * sizeof(int32_t),
-                          devicePointer ? cudaMemcpyDeviceToDevice : cudaMemcpyHostToDevice,
-                          m.stream),
-          "upload labels");
-    Check(cudaStreamSynchronize(m.stream), "upload labels (synchronise)");
-    m.hasLabels = true;
-    try
-    {
-      m.Recompute(numberOfCells);
-    }
-    catch (...)
-    {
-      m.hasLabels = false; // the copied labels are invalid
-      throw;
-    }
+    m.ReplaceLabels(numberOfCells, [&] {
+      Check(cudaMemcpyAsync(m.labels.Data(),
+                            labels,
+                            m.numberOfPixels * sizeof(int32_t),
+                            devicePointer ? cudaMemcpyDeviceToDevice : cudaMemcpyHostToDevice,
+                            m.stream),
+            "upload labels");
+    });
   });
 }
 
@@ -2046,7 +2057,7 @@ CVTSwapOptimizer::ContractionBlockSums(unsigned int          blockSize,
     }
     const size_t         n = static_cast<size_t>(bg.numberOfBlocks);
     DeviceBuffer<double> mass(n), centroid(n * m.dimension);
-    const int            blocks = static_cast<int>(std::min<size_t>((n + Threads - 1) / Threads, 65535));
+    const unsigned int   blocks = Blocks(n, Threads);
     if (m.dimension == 2)
     {
       BlockSumsKernel<2><<<blocks, Threads, 0, m.stream>>>(m.grid, bg, m.density, mass.Data(), centroid.Data());
@@ -2076,27 +2087,17 @@ CVTSwapOptimizer::SetBlockLabels(unsigned int blockSize, const int32_t * blockLa
     }
     DeviceBuffer<int32_t> blockLabel(static_cast<size_t>(bg.numberOfBlocks));
     blockLabel.Upload(blockLabels, static_cast<size_t>(bg.numberOfBlocks), m.stream);
-    m.hasLabels = false;
-    if (m.dimension == 2)
-    {
-      BlockLabelsKernel<2><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
-    }
-    else
-    {
-      BlockLabelsKernel<3><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
-    }
-    CheckLaunch("BlockLabelsKernel");
-    Check(cudaStreamSynchronize(m.stream), "block labels (synchronise)");
-    m.hasLabels = true;
-    try
-    {
-      m.Recompute(numberOfCells);
-    }
-    catch (...)
-    {
-      m.hasLabels = false;
-      throw;
-    }
+    m.ReplaceLabels(numberOfCells, [&] {
+      if (m.dimension == 2)
+      {
+        BlockLabelsKernel<2><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
+      }
+      else
+      {
+        BlockLabelsKernel<3><<<m.strideBlocks, Threads, 0, m.stream>>>(m.grid, bg, blockLabel.Data(), m.labels.Data());
+      }
+      CheckLaunch("BlockLabelsKernel");
+    });
   });
 }
 

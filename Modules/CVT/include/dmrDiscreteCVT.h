@@ -228,6 +228,33 @@ public:
     Position(PixelIndex(p), x);
   }
 
+  /** The blocks the contraction starts from: blockSize pixels per axis (at least 1), nb per axis (the last ones cut at
+   * the grid's end), or single pixels where there would be fewer blocks than numberOfCells. */
+  struct ContractionBlockGrid
+  {
+    unsigned int          size;
+    std::array<size_t, D> perAxis;
+  };
+  static ContractionBlockGrid
+  ContractionBlocks(const std::array<size_t, D> & gridSize, size_t numberOfCells, unsigned int blockSize)
+  {
+    ContractionBlockGrid blocks{ std::max(1u, blockSize), {} };
+    for (;;)
+    {
+      size_t numberOfBlocks = 1;
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        blocks.perAxis[k] = (gridSize[k] + blocks.size - 1) / blocks.size;
+        numberOfBlocks *= blocks.perAxis[k];
+      }
+      if (numberOfCells <= numberOfBlocks || blocks.size == 1)
+      {
+        return blocks;
+      }
+      blocks.size = 1;
+    }
+  }
+
   /** Greedy least-cost pair contraction (paper 4.4) down to numberOfCells clusters.
    *
    * Starts from the BlockSize^D blocks and repeatedly merges the adjacent pair of clusters with the least
@@ -240,25 +267,15 @@ public:
   void
   ContractionInitialize(size_t numberOfCells, unsigned int blockSize)
   {
-    blockSize = std::max(1u, blockSize);
-    std::array<size_t, D> nb;
+    const auto                  blocks = ContractionBlocks(m_Grid.size, numberOfCells, blockSize);
+    const std::array<size_t, D> nb = blocks.perAxis;
+    blockSize = blocks.size;
     std::array<size_t, D> bstride;
     size_t                numberOfBlocks = 1;
     for (unsigned int k = 0; k < D; ++k)
     {
-      nb[k] = (m_Grid.size[k] + blockSize - 1) / blockSize;
       bstride[k] = numberOfBlocks;
       numberOfBlocks *= nb[k];
-    }
-    if (numberOfCells > numberOfBlocks && blockSize > 1)
-    {
-      ContractionInitialize(numberOfCells, 1);
-      return;
-    }
-    if (numberOfCells < 1 || numberOfCells > numberOfBlocks)
-    {
-      itkGenericExceptionMacro("DiscreteCVT: cannot make " << numberOfCells << " cells from " << numberOfBlocks
-                                                           << " pixels/blocks");
     }
     // block masses and centroids (first moments until the blocks are summed)
     std::vector<double> masses(numberOfBlocks, 0.0), centroids(numberOfBlocks * D, 0.0);

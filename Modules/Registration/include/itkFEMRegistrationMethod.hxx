@@ -1114,28 +1114,13 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
         // labels, as the CPU path's sweeps run from the contraction's state. Only the block sums and labels cross.
         dmr::ThrowOnError(cvt.SetGrid(D, grid.size.data(), grid.spacing.data()), "CVT grid");
         dmr::ThrowOnError(cvt.SetDensity(context.DeviceDensity(), true), "CVT density");
-        unsigned int          blockSize = std::max(1u, m_CVTFilter->GetBlockSize());
-        std::array<size_t, D> nb;
-        size_t                numberOfBlocks = 1;
-        const auto            blocksOf = [&](unsigned int size) {
-          numberOfBlocks = 1;
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            nb[k] = (grid.size[k] + size - 1) / size;
-            numberOfBlocks *= nb[k];
-          }
-        };
-        blocksOf(blockSize);
-        if (m_NumberOfNodes > numberOfBlocks && blockSize > 1) // as DiscreteCVT::ContractionInitialize
-        {
-          blockSize = 1;
-          blocksOf(blockSize);
-        }
+        const auto blocks =
+          dmr::DiscreteCVT<D>::ContractionBlocks(grid.size, m_NumberOfNodes, m_CVTFilter->GetBlockSize());
         std::vector<double> blockMass, blockCentroid;
-        dmr::ThrowOnError(cvt.ContractionBlockSums(blockSize, blockMass, blockCentroid), "contraction");
+        dmr::ThrowOnError(cvt.ContractionBlockSums(blocks.size, blockMass, blockCentroid), "contraction");
         size_t     numberOfLabels = 0;
         const auto blockLabel = dmr::DiscreteCVT<D>::ContractBlocks(
-          nb,
+          blocks.perAxis,
           blockMass.data(),
           blockCentroid.data(),
           m_NumberOfNodes,
@@ -1150,7 +1135,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
             }
           },
           numberOfLabels);
-        dmr::ThrowOnError(cvt.SetBlockLabels(blockSize, blockLabel.data(), m_NumberOfNodes), "CVT labels");
+        dmr::ThrowOnError(cvt.SetBlockLabels(blocks.size, blockLabel.data(), m_NumberOfNodes), "CVT labels");
         m_Timing.initialTessellation += seconds(t0, Clock::now());
       }
       else
