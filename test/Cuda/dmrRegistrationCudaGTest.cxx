@@ -490,16 +490,32 @@ StagesAgree(unsigned int nodes, unsigned int n)
   EXPECT_GT(maxForce, 0.0);
   EXPECT_LE(maxDiff, 1e-6 * maxForce);
 
+  // the elements' set-up made on the device: BarycentricMap::ElementAffine's numbers, bit for bit
+  const size_t affineSize = D * D + D;
+  ASSERT_TRUE(
+    context.SetMesh(mesh.nodes.data(), mesh.NumberOfNodes(), mesh.elements.front().data(), mesh.elements.size()).Ok());
+  {
+    std::vector<double>  affine(mesh.elements.size() * affineSize), hostAffine(affine.size());
+    std::vector<int64_t> bounds(mesh.elements.size() * 2 * D), hostBounds(bounds.size());
+    ASSERT_TRUE(context.DownloadElementRaster(affine.data(), bounds.data()).Ok());
+    size_t nonEmpty = 0;
+    for (size_t e = 0; e < mesh.elements.size(); ++e)
+    {
+      itk::dmr::BarycentricMap<D>::ElementAffine(grid,
+                                                 mesh,
+                                                 e,
+                                                 hostAffine.data() + e * affineSize,
+                                                 hostBounds.data() + e * 2 * D,
+                                                 hostBounds.data() + e * 2 * D + D);
+      nonEmpty += hostBounds[e * 2 * D] <= hostBounds[e * 2 * D + D] ? 1 : 0;
+    }
+    // (an element may lie between pixel rows: its box is empty, lo[0] > hi[0]; the 3D mesh here has 2 of 652)
+    EXPECT_GT(nonEmpty, mesh.elements.size() / 2);
+    EXPECT_EQ(std::memcmp(affine.data(), hostAffine.data(), affine.size() * sizeof(double)), 0)
+      << "inverse edge matrices or first vertices differ from BarycentricMap::ElementAffine's";
+    EXPECT_EQ(bounds, hostBounds) << "pixel bounding boxes differ from BarycentricMap::ElementAffine's";
+  }
   // owner of every pixel: identical to the CPU rasterisation
-  const auto raster = itk::dmr::MeshRasterData<D>(grid, mesh, nullptr);
-  ASSERT_TRUE(context
-                .SetMesh(mesh.nodes.data(),
-                         mesh.NumberOfNodes(),
-                         raster.elements.data(),
-                         mesh.elements.size(),
-                         raster.affine.data(),
-                         raster.bounds.data())
-                .Ok());
   itk::dmr::BarycentricMap<D> bary;
   bary.Build(grid, mesh, nullptr);
   std::vector<int32_t> owner(grid.numberOfPixels);
@@ -584,14 +600,17 @@ StagesAgree(unsigned int nodes, unsigned int n)
   // a mesh that does not cover the image is refused with a message, not a crash
   auto partial = mesh;
   partial.elements.resize(partial.elements.size() / 2);
-  const auto status = context.SetMesh(partial.nodes.data(),
-                                      partial.NumberOfNodes(),
-                                      raster.elements.data(),
-                                      partial.elements.size(),
-                                      raster.affine.data(),
-                                      raster.bounds.data());
+  const auto status = context.SetMesh(
+    partial.nodes.data(), partial.NumberOfNodes(), partial.elements.front().data(), partial.elements.size());
   EXPECT_FALSE(status.Ok());
   EXPECT_NE(status.message.find("not covered"), std::string::npos) << status.message;
+  // an element with a node id out of range is refused before anything is uploaded
+  auto bad = mesh;
+  bad.elements[bad.elements.size() / 2][1] = static_cast<int32_t>(bad.NumberOfNodes());
+  const auto badStatus =
+    context.SetMesh(bad.nodes.data(), bad.NumberOfNodes(), bad.elements.front().data(), bad.elements.size());
+  EXPECT_FALSE(badStatus.Ok());
+  EXPECT_NE(badStatus.message.find("does not exist"), std::string::npos) << badStatus.message;
 
   // the force under a non-zero field, with both gradient rules (the warped moving gradient reads grad w): a smooth
   // swirl of a few pixels, given to the CPU filter in the physical frame and to the context in the grid frame

@@ -18,6 +18,7 @@
 #ifndef dmrGrid_h
 #define dmrGrid_h
 
+#include "dmrSimplexGeometry.h" // FloorByTruncation, CeilByTruncation
 #include "itkImageBase.h"
 #include "itkImageToImageFilterCommon.h"
 #include "itkMultiThreaderBase.h"
@@ -36,31 +37,6 @@ namespace itk
 {
 namespace dmr
 {
-/** std::floor and std::ceil by truncation, for the per-row and per-pixel loops: baseline x86-64 code (no SSE4.1
- * roundsd) evaluates the std versions by a slow sequence or a call. Within |x| < 2^52 the truncation is exact and the
- * value is adjusted by one where it went the wrong way; beyond it (every double is whole there), for NaN and
- * infinities, the std versions. The same values, except that a zero result carries no sign. */
-inline double
-FloorByTruncation(double x)
-{
-  if (!(std::abs(x) < 4503599627370496.0))
-  {
-    return std::floor(x);
-  }
-  const double t = static_cast<double>(static_cast<int64_t>(x));
-  return t > x ? t - 1.0 : t;
-}
-inline double
-CeilByTruncation(double x)
-{
-  if (!(std::abs(x) < 4503599627370496.0))
-  {
-    return std::ceil(x);
-  }
-  const double t = static_cast<double>(static_cast<int64_t>(x));
-  return t < x ? t + 1.0 : t;
-}
-
 /** \brief Flat-array view of an image grid in the "grid frame".
  *
  * The grid frame has its axes along the image axes and is measured in mm: a pixel with index i sits at

@@ -250,8 +250,9 @@ public:
   }
 
   /** Rasterisation set-up of element e: its inverse edge matrix (D x D, row-major) then its first vertex into
-   * affine[0 .. D*D+D), and the pixel bounding box [lo, hi] (empty: lo[0] > hi[0]). Shared with the CUDA back-end so
-   * both rasterise from the same numbers. */
+   * affine[0 .. D*D+D), and the pixel bounding box [lo, hi] (empty: lo[0] > hi[0]); a degenerate element gets a zero
+   * matrix. The CUDA back-end computes the same numbers on the device through the same functions
+   * (dmrSimplexGeometry.h), so both rasterise from the same bits. */
   static void
   ElementAffine(const Grid<D> &        grid,
                 const SimplexMesh<D> & mesh,
@@ -260,29 +261,20 @@ public:
                 int64_t *              lo,
                 int64_t *              hi)
   {
-    double inv[D][D], x0[D];
-    mesh.EdgeMatrix(e, x0, &inv);
+    double v[D + 1][D], inv[D][D] = {}, x0[D];
+    for (unsigned int i = 0; i <= D; ++i)
+    {
+      std::copy_n(&mesh.nodes[static_cast<size_t>(mesh.elements[e][i]) * D], D, v[i]);
+    }
+    SimplexEdgeInverse<D>(v, x0, &inv);
     std::copy(&inv[0][0], &inv[0][0] + D * D, affine);
     std::copy(x0, x0 + D, affine + D * D);
+    int64_t size[D];
     for (unsigned int k = 0; k < D; ++k)
     {
-      double mn = std::numeric_limits<double>::max(), mx = -mn;
-      for (unsigned int v = 0; v < NumberOfVertices; ++v)
-      {
-        const double q = mesh.nodes[mesh.elements[e][v] * D + k] / grid.spacing[k];
-        mn = std::min(mn, q);
-        mx = std::max(mx, q);
-      }
-      lo[k] = std::max<int64_t>(0, static_cast<int64_t>(CeilByTruncation(mn - 1e-6)));
-      hi[k] =
-        std::min<int64_t>(static_cast<int64_t>(grid.size[k]) - 1, static_cast<int64_t>(FloorByTruncation(mx + 1e-6)));
-      if (lo[k] > hi[k])
-      {
-        lo[0] = 1;
-        hi[0] = 0;
-        return;
-      }
+      size[k] = static_cast<int64_t>(grid.size[k]);
     }
+    SimplexPixelBox<D>(v, grid.spacing.data(), size, lo, hi);
   }
 
   const std::vector<int32_t> &

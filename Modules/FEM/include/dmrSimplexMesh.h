@@ -54,43 +54,12 @@ struct SimplexMesh
   double
   EdgeMatrix(size_t e, double (&x0)[D], double (*inv)[D][D] = nullptr) const
   {
-    double m[D][D];
-    for (unsigned int r = 0; r < D; ++r)
+    double v[D + 1][D];
+    for (unsigned int i = 0; i <= D; ++i)
     {
-      x0[r] = nodes[elements[e][0] * D + r];
-      for (unsigned int c = 0; c < D; ++c)
-      {
-        m[r][c] = nodes[elements[e][c + 1] * D + r] - x0[r];
-      }
+      std::copy_n(&nodes[static_cast<size_t>(elements[e][i]) * D], D, v[i]);
     }
-    double det;
-    if (D == 2)
-    {
-      det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-      if (inv && det != 0.0)
-      {
-        (*inv)[0][0] = m[1][1] / det;
-        (*inv)[0][1] = -m[0][1] / det;
-        (*inv)[1][0] = -m[1][0] / det;
-        (*inv)[1][1] = m[0][0] / det;
-      }
-      return det;
-    }
-    det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
-          m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-    if (inv && det != 0.0)
-    {
-      for (unsigned int r = 0; r < D; ++r)
-      {
-        for (unsigned int c = 0; c < D; ++c)
-        {
-          // transposed cofactor over det
-          const unsigned int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
-          (*inv)[r][c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
-        }
-      }
-    }
-    return det;
+    return SimplexEdgeInverse<D>(v, x0, inv);
   }
 
   /** Signed measure (area/volume) of element e, positive for positive orientation. */

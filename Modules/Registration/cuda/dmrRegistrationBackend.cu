@@ -24,8 +24,10 @@
 #include "dmrCudaUtils.cuh"
 #include "dmrElasticOperator.h"
 #include "dmrFixedPointGather.h"
+#include "dmrSimplexGeometry.h"
 
 #include <cooperative_groups.h>
+#include <cub/block/block_scan.cuh>
 
 #include <algorithm>
 #include <climits>
@@ -591,6 +593,85 @@ ForEachPixelInElementRow(const DeviceGrid & g,
     {
       body(base + x);
     }
+  }
+}
+
+/** Per element e: the inverse edge matrix and first vertex (affine), the pixel bounding box (bounds) and its number of
+ * rows along axes 1..D-1 (rowStart[e + 1]; RowStartKernel sums them), with BarycentricMap::ElementAffine's arithmetic
+ * (dmrSimplexGeometry.h), so the CPU and the GPU rasterise and assemble from the same bits. */
+template <int D>
+__global__ void
+ElementSetupKernel(DeviceGrid     g,
+                   const double * nodes,
+                   const int *    elements,
+                   long long      nElements,
+                   double *       affine,
+                   long long *    bounds,
+                   long long *    rowStart)
+{
+  for (long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x; e < nElements;
+       e += static_cast<long long>(gridDim.x) * blockDim.x)
+  {
+    double v[D + 1][D], inv[D][D] = {}, x0[D];
+    for (int i = 0; i <= D; ++i)
+    {
+      const long long a = elements[e * (D + 1) + i];
+      for (int k = 0; k < D; ++k)
+      {
+        v[i][k] = nodes[a * D + k];
+      }
+    }
+    SimplexEdgeInverse<D>(v, x0, &inv);
+    double * out = affine + e * (D * D + D);
+    for (int r = 0; r < D; ++r)
+    {
+      for (int c = 0; c < D; ++c)
+      {
+        out[r * D + c] = inv[r][c];
+      }
+      out[D * D + r] = x0[r];
+    }
+    int64_t size[D], lo[D] = {}, hi[D] = {};
+    for (int k = 0; k < D; ++k)
+    {
+      size[k] = g.size[k];
+    }
+    SimplexPixelBox<D>(v, g.spacing, size, lo, hi);
+    long long rows = lo[0] <= hi[0] ? 1 : 0;
+    for (int k = 0; k < D; ++k)
+    {
+      bounds[e * 2 * D + k] = lo[k];
+      bounds[e * 2 * D + D + k] = hi[k];
+      rows *= k > 0 ? (hi[k] >= lo[k] ? hi[k] - lo[k] + 1 : 0) : 1;
+    }
+    rowStart[e + 1] = rows;
+    if (e == 0)
+    {
+      rowStart[0] = 0;
+    }
+  }
+}
+
+/** rowStart[1..n] <- its inclusive prefix sums (rowStart[0] is 0): the elements' first rows in one numbering. One
+ * block; integer sums, so the order of the additions does not matter. */
+__global__ void
+RowStartKernel(long long * rowStart, long long n)
+{
+  using BlockScan = cub::BlockScan<long long, Threads>;
+  __shared__ typename BlockScan::TempStorage scan;
+  const long long                            chunk = (n + blockDim.x - 1) / blockDim.x;
+  const long long                            begin = 1 + threadIdx.x * chunk, end = min(n + 1, begin + chunk);
+  long long                                  sum = 0;
+  for (long long i = begin; i < end; ++i)
+  {
+    sum += rowStart[i];
+  }
+  long long before = 0;
+  BlockScan(scan).ExclusiveSum(sum, before);
+  for (long long i = begin; i < end; ++i)
+  {
+    before += rowStart[i];
+    rowStart[i] = before;
   }
 }
 
@@ -1848,9 +1929,7 @@ Status
 RegistrationContext::SetMesh(const double *  nodes,
                              size_t          numberOfNodes,
                              const int32_t * elements,
-                             size_t          numberOfElements,
-                             const double *  affine,
-                             const int64_t * bounds)
+                             size_t          numberOfElements)
 {
   return Guard([&] {
     Impl &       m = *m_Impl;
@@ -1859,17 +1938,7 @@ RegistrationContext::SetMesh(const double *  nodes,
     {
       throw CudaError("the mesh has no element or too many elements");
     }
-    m.numberOfNodes = numberOfNodes;
-    m.numberOfElements = numberOfElements;
-    m.elasticityReady = false;
-    m.nodes.Upload(nodes, numberOfNodes * D);
-    m.elements.Upload(elements, numberOfElements * (D + 1));
-    m.affine.Upload(affine, numberOfElements * (D * D + D));
-    static_assert(sizeof(long long) == sizeof(int64_t), "64-bit bounds");
-    m.bounds.Upload(reinterpret_cast<const long long *>(bounds), numberOfElements * 2 * D);
-    m.nodalSums.Reserve(numberOfNodes * D);
-    m.nodal.Reserve(numberOfNodes * D);
-    // node -> (element, vertex) incidence in element order, for a deterministic nodal sum
+    // node -> (element, vertex) incidence in element order, for a deterministic nodal sum (and the check of the ids)
     m.hostStart.assign(numberOfNodes + 1, 0);
     for (size_t i = 0; i < numberOfElements * (D + 1); ++i)
     {
@@ -1890,42 +1959,48 @@ RegistrationContext::SetMesh(const double *  nodes,
     {
       m.hostIncidence[fill[elements[i]]++] = static_cast<int>(i);
     }
+    m.numberOfNodes = numberOfNodes;
+    m.numberOfElements = numberOfElements;
+    m.elasticityReady = false;
+    m.nodes.Upload(nodes, numberOfNodes * D);
+    m.elements.Upload(elements, numberOfElements * (D + 1));
     m.incidenceStart.Upload(m.hostStart.data(), m.hostStart.size());
     m.incidence.Upload(m.hostIncidence.data(), m.hostIncidence.size());
+    m.nodalSums.Reserve(numberOfNodes * D);
+    m.nodal.Reserve(numberOfNodes * D);
 
-    FillKernel<<<GridBlocks(m.grid.n), Threads>>>(m.owner.Data(), m.grid.n, INT_MAX);
-    CheckLaunch("FillKernel");
-    // the first row of every element's bounding box in one numbering (an empty box, lo > hi, has no row)
-    std::vector<long long> rowStart(numberOfElements + 1, 0);
-    for (size_t e = 0; e < numberOfElements; ++e)
-    {
-      const int64_t * b = bounds + e * 2 * D;
-      long long       rows = b[0] <= b[D] ? 1 : 0;
-      for (size_t k = 1; k < D; ++k)
-      {
-        rows *= std::max<long long>(0, b[D + k] - b[k] + 1);
-      }
-      rowStart[e + 1] = rowStart[e] + rows;
-    }
-    m.rowStart.Upload(rowStart.data(), rowStart.size());
-    const unsigned rowBlocks = GridBlocks(rowStart.back());
+    // the elements' rasterisation set-up and their first rows, on the device
+    m.affine.Reserve(numberOfElements * (D * D + D));
+    m.bounds.Reserve(numberOfElements * 2 * D);
+    m.rowStart.Reserve(numberOfElements + 1);
+    const long long nElements = static_cast<long long>(numberOfElements);
     if (D == 2)
     {
-      RasteriseKernel<2><<<rowBlocks, Threads>>>(m.grid,
-                                                 static_cast<long long>(numberOfElements),
-                                                 m.rowStart.Data(),
-                                                 m.affine.Data(),
-                                                 m.bounds.Data(),
-                                                 m.owner.Data());
+      ElementSetupKernel<2><<<GridBlocks(nElements), Threads>>>(
+        m.grid, m.nodes.Data(), m.elements.Data(), nElements, m.affine.Data(), m.bounds.Data(), m.rowStart.Data());
     }
     else
     {
-      RasteriseKernel<3><<<rowBlocks, Threads>>>(m.grid,
-                                                 static_cast<long long>(numberOfElements),
-                                                 m.rowStart.Data(),
-                                                 m.affine.Data(),
-                                                 m.bounds.Data(),
-                                                 m.owner.Data());
+      ElementSetupKernel<3><<<GridBlocks(nElements), Threads>>>(
+        m.grid, m.nodes.Data(), m.elements.Data(), nElements, m.affine.Data(), m.bounds.Data(), m.rowStart.Data());
+    }
+    CheckLaunch("ElementSetupKernel");
+    RowStartKernel<<<1, Threads>>>(m.rowStart.Data(), nElements);
+    CheckLaunch("RowStartKernel");
+    FillKernel<<<GridBlocks(m.grid.n), Threads>>>(m.owner.Data(), m.grid.n, INT_MAX);
+    CheckLaunch("FillKernel");
+    long long rows = 0;
+    Check(cudaMemcpy(&rows, m.rowStart.Data() + nElements, sizeof(rows), cudaMemcpyDeviceToHost), "element rows");
+    const unsigned rowBlocks = GridBlocks(rows);
+    if (D == 2)
+    {
+      RasteriseKernel<2><<<rowBlocks, Threads>>>(
+        m.grid, nElements, m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
+    }
+    else
+    {
+      RasteriseKernel<3><<<rowBlocks, Threads>>>(
+        m.grid, nElements, m.rowStart.Data(), m.affine.Data(), m.bounds.Data(), m.owner.Data());
     }
     CheckLaunch("RasteriseKernel");
     const unsigned long long none = ~0ULL;
@@ -1940,6 +2015,22 @@ RegistrationContext::SetMesh(const double *  nodes,
                       " is not covered by any element: the mesh does not cover the image domain");
     }
     m.allocated = std::max(m.allocated, m.Bytes());
+  });
+}
+
+Status
+RegistrationContext::DownloadElementRaster(double * affine, int64_t * bounds) const
+{
+  return Guard([&] {
+    const Impl & m = *m_Impl;
+    if (m.numberOfElements == 0)
+    {
+      throw CudaError("DownloadElementRaster() needs SetMesh() first");
+    }
+    const size_t D = m.dimension;
+    m.affine.Download(affine, m.numberOfElements * (D * D + D));
+    static_assert(sizeof(long long) == sizeof(int64_t), "64-bit bounds");
+    m.bounds.Download(reinterpret_cast<long long *>(bounds), m.numberOfElements * 2 * D);
   });
 }
 

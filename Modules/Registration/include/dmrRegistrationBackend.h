@@ -121,17 +121,17 @@ public:
   DownloadLevel(unsigned int level, float * fixed, float * moving, float * movingGradient) const;
 
   /** Uploads a simplex mesh and rasterises it: every pixel gets the lowest-id element containing it (the CPU
-   * BarycentricMap rule, same per-pixel test). nodes: grid frame, mm; elements: dimension+1 node ids each;
-   * affine: per element the inverse edge matrix (D x D, row-major) then the first vertex (D), as
-   * BarycentricMap::ElementAffine computes them; bounds: per element the pixel bounding box lo[D], hi[D] (empty when
-   * lo[0] > hi[0]). Fails when a pixel is not covered. */
+   * BarycentricMap rule, same per-pixel test). nodes: grid frame, mm; elements: dimension+1 node ids each. The
+   * elements' rasterisation set-up (inverse edge matrix, first vertex, pixel bounding box) is computed on the device
+   * with BarycentricMap::ElementAffine's arithmetic (dmrSimplexGeometry.h). Fails when an element refers to a node that
+   * does not exist or when a pixel is not covered. */
   Status
-  SetMesh(const double *  nodes,
-          size_t          numberOfNodes,
-          const int32_t * elements,
-          size_t          numberOfElements,
-          const double *  affine,
-          const int64_t * bounds);
+  SetMesh(const double * nodes, size_t numberOfNodes, const int32_t * elements, size_t numberOfElements);
+  /** Test hook: host copies of the last SetMesh's rasterisation set-up, per element the inverse edge matrix (D x D,
+   * row-major) then the first vertex (D) into affine, and the pixel bounding box lo[D], hi[D] into bounds (empty when
+   * lo[0] > hi[0]): what BarycentricMap::ElementAffine gives for the same mesh. */
+  Status
+  DownloadElementRaster(double * affine, int64_t * bounds) const;
   /** Prepares the linear-elastic system of the mesh of the last SetMesh() for SolveElasticity(): the system of
    * LinearElasticFEMSolver (P1, Lame lambda and mu, grid frame in mm, u = 0 on the nodes flagged in `fixed`), kept
    * matrix-free: K p is sum_e V_e sigma_e(grad p) grad phi_a (no assembly, no sparse pattern). */

@@ -883,63 +883,18 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
   }
   return views;
 }
-
-/** What RegistrationContext::SetMesh takes besides the nodes: per element its node ids, the rasterisation set-up of
- * BarycentricMap::ElementAffine (inverse edge matrix and first vertex) and its pixel bounding box. */
-template <unsigned int D>
-struct MeshRaster
-{
-  std::vector<int32_t> elements; // D + 1 per element
-  std::vector<double>  affine;   // D * D + D per element
-  std::vector<int64_t> bounds;   // lo[D], hi[D] per element
-};
-
-template <unsigned int D>
-MeshRaster<D>
-MeshRasterData(const Grid<D> & grid, const SimplexMesh<D> & mesh, MultiThreaderBase * threader)
-{
-  constexpr size_t affineSize = D * D + D;
-  const size_t     nElements = mesh.elements.size();
-  MeshRaster<D>    raster;
-  raster.elements.resize(nElements * (D + 1));
-  raster.affine.resize(nElements * affineSize);
-  raster.bounds.resize(nElements * 2 * D);
-  ParallelForChunks(
-    threader,
-    nElements,
-    [&](size_t b, size_t e) {
-      for (size_t i = b; i < e; ++i)
-      {
-        BarycentricMap<D>::ElementAffine(grid,
-                                         mesh,
-                                         i,
-                                         raster.affine.data() + i * affineSize,
-                                         raster.bounds.data() + i * 2 * D,
-                                         raster.bounds.data() + i * 2 * D + D);
-        for (unsigned int v = 0; v <= D; ++v)
-        {
-          raster.elements[i * (D + 1) + v] = static_cast<int32_t>(mesh.elements[i][v]);
-        }
-      }
-    },
-    256);
-  return raster;
-}
 } // namespace dmr
 
 template <typename TF, typename TM, typename TD>
 void
 FEMRegistrationMethod<TF, TM, TD>::UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh)
 {
-  constexpr unsigned int D = ImageDimension;
-  const auto             raster =
-    dmr::MeshRasterData<D>(dmr::Grid<D>::FromImage(this->GetFixedImage()), mesh, this->GetMultiThreader());
+  static_assert(sizeof(mesh.elements.front()) == (ImageDimension + 1) * sizeof(int32_t),
+                "the elements are contiguous node ids");
   dmr::ThrowOnError(context.SetMesh(mesh.nodes.data(),
                                     mesh.NumberOfNodes(),
-                                    raster.elements.data(),
-                                    mesh.elements.size(),
-                                    raster.affine.data(),
-                                    raster.bounds.data()),
+                                    mesh.elements.empty() ? nullptr : mesh.elements.front().data(),
+                                    mesh.elements.size()),
                     "barycentric rasterisation");
 }
 

@@ -84,7 +84,12 @@ RegistrationContext::DownloadLevel(unsigned int, float *, float *, float *) cons
   return Unavailable();
 }
 Status
-RegistrationContext::SetMesh(const double *, size_t, const int32_t *, size_t, const double *, const int64_t *)
+RegistrationContext::SetMesh(const double *, size_t, const int32_t *, size_t)
+{
+  return Unavailable();
+}
+Status
+RegistrationContext::DownloadElementRaster(double *, int64_t *) const
 {
   return Unavailable();
 }
