@@ -164,6 +164,41 @@ TEST(DualMeshCuda, OneSummarizerServesChangingInputsFromDeviceLabels)
   EXPECT_TRUE(SameSummary(shared, cpu));
 }
 
+TEST(DualMeshCuda, SummaryWithoutAdjacentPairsIsTheRestOfTheCpuSummary)
+{
+  // SetFindAdjacentPairs(false), as the 3D registration calls it: every other field as the CPU's, no pairs; turned
+  // on again, the pairs are back
+  if (!itk::dmr::cuda::DeviceAvailable())
+    GTEST_SKIP() << "no CUDA device";
+  itk::dmr::cuda::LabelSummarizer summarizer;
+  EXPECT_TRUE(summarizer.GetFindAdjacentPairs());
+  auto withoutPairs = [&](auto grid, const std::vector<int32_t> & labels, size_t nCells) {
+    constexpr unsigned int D = decltype(grid)::Dimension;
+    LabelSummary           cpu = itk::dmr::SummarizeLabels<D>(grid, labels.data(), nCells, nullptr), gpu;
+    EXPECT_FALSE(cpu.adjacentPairs.empty());
+    cpu.adjacentPairs.clear();
+    summarizer.SetFindAdjacentPairs(false);
+    EXPECT_TRUE(summarizer.SummarizeHostLabels(D, grid.size.data(), labels.data(), nCells, gpu).Ok());
+    EXPECT_TRUE(SameSummary(gpu, cpu));
+    summarizer.SetFindAdjacentPairs(true);
+    EXPECT_TRUE(GpuSummaryIsTheCpuSummary<D>(grid, labels, nCells, &summarizer));
+  };
+  const auto phantom = itk::dmr::test::MakeDualMeshPhantom3D(200);
+  withoutPairs(phantom.GetGrid(), PhantomLabels(phantom), 200);
+  const auto grid3 = MakeGrid<3>({ { 64, 48, 40 } });
+  withoutPairs(grid3, itk::dmr::test::RandomLabels(grid3.numberOfPixels, 20000, 3), 20000);
+  const auto grid2 = MakeGrid<2>({ { 333, 251 } });
+  withoutPairs(grid2, itk::dmr::test::LatticeVoronoiLabels<2>(grid2, { { 21, 17 } }, 5), 21 * 17);
+  // a label out of range is still found
+  std::vector<int32_t> bad = itk::dmr::test::RandomLabels(grid3.numberOfPixels, 7, 4);
+  bad[1234] = 7;
+  LabelSummary out;
+  summarizer.SetFindAdjacentPairs(false);
+  const auto status = summarizer.SummarizeHostLabels(3, grid3.size.data(), bad.data(), 7, out);
+  EXPECT_FALSE(status.Ok());
+  EXPECT_NE(status.message.find("outside"), std::string::npos) << status.message;
+}
+
 TEST(DualMeshCuda, BadInputGivesAnErrorStatus)
 {
   if (!itk::dmr::cuda::DeviceAvailable())

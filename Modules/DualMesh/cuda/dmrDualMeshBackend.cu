@@ -77,6 +77,7 @@ struct BulkParams
   ull *           keys;
   ull             keyCapacity;
   ull *           counters;
+  int             findPairs; // 0: no adjacency keys (LabelSummarizer::SetFindAdjacentPairs)
 };
 
 __device__ inline bool
@@ -215,6 +216,10 @@ BulkKernel(BulkParams p)
       }
       ++n;
       sumX += static_cast<ull>(x);
+      if (!p.findPairs)
+      {
+        continue;
+      }
       if (x + 1 < sx)
       {
         const int32_t o = L[x + 1];
@@ -463,6 +468,7 @@ struct LabelSummarizer::Impl
   DeviceBuffer<unsigned char> cubTemp;
   PinnedBuffer                hostStats;
   PinnedBuffer                hostKeys;
+  bool                        findPairs{ true };
 
   void
   Run(unsigned int dimension, const size_t * size, const int32_t * labels, size_t numberOfCells, LabelSummary & out);
@@ -507,6 +513,7 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
   bulk.dimension = static_cast<int>(D);
   bulk.cellStats = stats.Data();
   bulk.counters = stats.Data() + counterAt;
+  bulk.findPairs = findPairs ? 1 : 0;
   const unsigned bulkBlocks = Blocks(static_cast<size_t>(bulk.items), kThreads * kItemsPerThread);
 
   BorderParams border{};
@@ -646,7 +653,7 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
     out.cornerLabels[q] = static_cast<int32_t>(static_cast<long long>(hostStatsData[cornerAt + q]));
   }
   out.adjacentPairs.clear();
-  if (emitted == 0)
+  if (emitted == 0 || !findPairs)
   {
     return;
   }
@@ -734,6 +741,18 @@ LabelSummarizer::Summarize(unsigned int    dimension,
     return Status::Error("label summary: " + std::to_string(numberOfCells) + " cells (1 to 2^31 - 1 supported)");
   }
   return Guard([&] { m_Impl->Run(dimension, size, deviceLabels, numberOfCells, out); });
+}
+
+void
+LabelSummarizer::SetFindAdjacentPairs(bool find)
+{
+  m_Impl->findPairs = find;
+}
+
+bool
+LabelSummarizer::GetFindAdjacentPairs() const
+{
+  return m_Impl->findPairs;
 }
 
 Status

@@ -60,6 +60,15 @@ public:
             size_t          numberOfCells,
             LabelSummary &  out);
 
+  /** Whether Summarize finds the pairs of adjacent cells (LabelSummary::adjacentPairs; on by default). The 2D dual
+   * mesh needs them (its constraints); the 3D dual mesh reads them only for its statistics, so the registration turns
+   * them off in 3D: the summary is then the same except that adjacentPairs is empty, and the call does without the
+   * neighbour comparisons, the sort and two of its three downloads. */
+  void
+  SetFindAdjacentPairs(bool find);
+  bool
+  GetFindAdjacentPairs() const;
+
   /** Test hook: copies host labels into a device buffer owned by this summarizer (kept until the next upload). */
   Status
   UploadLabels(const int32_t * hostLabels, size_t numberOfPixels);

@@ -35,14 +35,30 @@ BuiltWithoutCuda()
 
 struct LabelSummarizer::Impl
 {
+  bool findPairs{ true };
 };
 
 LabelSummarizer::LabelSummarizer()
-  : m_Impl(nullptr)
+  : m_Impl(new Impl)
 {
 }
 
-LabelSummarizer::~LabelSummarizer() = default;
+LabelSummarizer::~LabelSummarizer()
+{
+  delete m_Impl;
+}
+
+void
+LabelSummarizer::SetFindAdjacentPairs(bool find)
+{
+  m_Impl->findPairs = find;
+}
+
+bool
+LabelSummarizer::GetFindAdjacentPairs() const
+{
+  return m_Impl->findPairs;
+}
 
 Status
 LabelSummarizer::Summarize(unsigned int, const size_t *, const int32_t *, size_t, LabelSummary &)

@@ -984,6 +984,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   dmr::cuda::CVTSwapOptimizer cvt;
   dmr::cuda::LabelSummarizer  summarizer;
   dmr::LabelSummary           summary;
+  summarizer.SetFindAdjacentPairs(D == 2); // the 3D dual mesh does not read them (no statistics asked for below)
 
   // the elastic system of a mesh: on the device when it is large enough (no assembly on the CPU), otherwise
   // assembled on the CPU; hostAssembled says whether m_Solver holds the current mesh's K
