@@ -939,9 +939,14 @@ CellRangeKernel(const uint32_t * sortedLabels, int32_t n, int32_t * start, int32
 }
 
 /** One warp per cell: mass and centroid summed over the cell's pixels in pixel order, the order of
- * DiscreteCVT::RecomputeStatistics. The lanes load 32 pixels and store their terms (w, w x) in shared memory; lane k
- * (k <= D) then adds component k of the 32 terms in order, so the sums are the sequential ones. (Broadcasting every
- * term to all lanes by shuffles gave the same sums with D + 1 shuffles per term, which bounded the kernel.) */
+ * DiscreteCVT::RecomputeStatistics. The lanes load the pixels of StatisticsChunks x 32 at once (all their loads in
+ * flight together, the next group's pixel ids while this group is summed) and store their terms (w, w x) in shared
+ * memory; lane k (k <= D) then adds component k of the terms in order, so the sums are the sequential ones. The time
+ * is that of the largest cell, a chain of dependent loads and additions: one group per 32 pixels kept each warp
+ * waiting on every load (a 20 000-pixel cell, 625 round trips). (Broadcasting every term to all lanes by shuffles gave
+ * the same sums with D + 1 shuffles per term, which bounded the kernel.) */
+constexpr int StatisticsChunks = 4;
+
 template <unsigned int D>
 __global__ void
 CellStatisticsKernel(GridParams         g,
@@ -955,45 +960,53 @@ CellStatisticsKernel(GridParams         g,
                      StatisticsReport * report)
 {
   constexpr unsigned int all = 0xffffffffu;
-  // a row of 33: the D + 1 summing lanes read distinct banks
-  __shared__ double terms[Threads / 32][D + 1][33];
+  constexpr int32_t      G = StatisticsChunks, span = 32 * G;
+  // a row of span + 1: the D + 1 summing lanes read distinct banks
+  __shared__ double terms[Threads / 32][D + 1][span + 1];
   const int32_t     lane = static_cast<int32_t>(threadIdx.x & 31u);
-  double(*const term)[33] = terms[threadIdx.x / 32];
+  double(*const term)[span + 1] = terms[threadIdx.x / 32];
   const int32_t warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
   for (int32_t c = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); c < nCells; c += warps)
   {
     double        sum = 0.0; // lane 0: the mass; lane 1 + k: the first moment along axis k
     const int32_t end = stop[c];
-    for (int32_t base = start[c]; base < end; base += 32)
+    int32_t       base = start[c];
+    uint32_t      p[G];
+    for (int32_t q = 0; q < G; ++q)
     {
-      double w = 0.0, wx[D];
-      for (unsigned int k = 0; k < D; ++k)
+      const int32_t i = base + q * 32 + lane;
+      p[q] = i < end ? pixels[i] : 0u;
+    }
+    for (; base < end; base += span)
+    {
+      float wf[G];
+      for (int32_t q = 0; q < G; ++q)
       {
-        wx[k] = 0.0;
+        wf[q] = base + q * 32 + lane < end ? density[p[q]] : 0.0f;
       }
-      if (base + lane < end)
+      for (int32_t q = 0; q < G; ++q)
       {
-        const int32_t p = static_cast<int32_t>(pixels[base + lane]);
-        int32_t       idx[D];
-        double        x[D];
-        IndexOf<D>(g, p, idx);
+        int32_t idx[D];
+        double  x[D];
+        IndexOf<D>(g, static_cast<int32_t>(p[q]), idx);
         PositionOf<D>(g, idx, x);
-        const float wf = density[p];
-        w = wf;
+        const bool inside = base + q * 32 + lane < end;
+        term[0][q * 32 + lane] = inside ? static_cast<double>(wf[q]) : 0.0;
         for (unsigned int k = 0; k < D; ++k)
         {
-          wx[k] = wf * x[k];
+          term[1 + k][q * 32 + lane] = inside ? wf[q] * x[k] : 0.0;
         }
       }
-      term[0][lane] = w;
-      for (unsigned int k = 0; k < D; ++k)
+      // the next group's pixel ids, loaded while this group is summed
+      for (int32_t q = 0; q < G; ++q)
       {
-        term[1 + k][lane] = wx[k];
+        const int32_t i = base + span + q * 32 + lane;
+        p[q] = i < end ? pixels[i] : 0u;
       }
       __syncwarp();
       if (lane <= static_cast<int32_t>(D))
       {
-        const int32_t n = min(32, end - base);
+        const int32_t n = min(span, end - base);
         for (int32_t j = 0; j < n; ++j)
         {
           sum += term[lane][j];
