@@ -104,7 +104,8 @@ SimplexEdgeInverse(const double (&v)[D + 1][D], double (&x0)[D], double (*inv)[D
 
 /** The pixel bounding box [lo, hi] of a simplex on a grid of size[k] pixels of spacing[k] mm: the pixels whose
  * index lies within a millionth of a pixel of the vertices' range, clipped to the grid. Returns false for an empty
- * box (the simplex lies outside the grid), which is then written as lo[0] = 1 > hi[0] = 0. */
+ * box (along some axis no pixel index lies in that range: the simplex lies outside the grid, or is a sliver between
+ * two pixel rows), which is then written as lo[0] = 1 > hi[0] = 0; the axes after that one are left as they were. */
 template <unsigned int D>
 DMR_HOST_DEVICE inline bool
 SimplexPixelBox(const double (&v)[D + 1][D], const double * spacing, const int64_t * size, int64_t * lo, int64_t * hi)
