@@ -468,10 +468,14 @@ struct LabelSummarizer::Impl
   DeviceBuffer<unsigned char> cubTemp;
   PinnedBuffer                hostStats;
   PinnedBuffer                hostKeys;
-  bool                        findPairs{ true };
 
   void
-  Run(unsigned int dimension, const size_t * size, const int32_t * labels, size_t numberOfCells, LabelSummary & out);
+  Run(unsigned int    dimension,
+      const size_t *  size,
+      const int32_t * labels,
+      size_t          numberOfCells,
+      bool            findPairs,
+      LabelSummary &  out);
 };
 
 void
@@ -479,6 +483,7 @@ LabelSummarizer::Impl::Run(unsigned int    dimension,
                            const size_t *  size,
                            const int32_t * labels,
                            size_t          numberOfCells,
+                           bool            findPairs,
                            LabelSummary &  out)
 {
   const unsigned int D = dimension;
@@ -740,19 +745,7 @@ LabelSummarizer::Summarize(unsigned int    dimension,
   {
     return Status::Error("label summary: " + std::to_string(numberOfCells) + " cells (1 to 2^31 - 1 supported)");
   }
-  return Guard([&] { m_Impl->Run(dimension, size, deviceLabels, numberOfCells, out); });
-}
-
-void
-LabelSummarizer::SetFindAdjacentPairs(bool find)
-{
-  m_Impl->findPairs = find;
-}
-
-bool
-LabelSummarizer::GetFindAdjacentPairs() const
-{
-  return m_Impl->findPairs;
+  return Guard([&] { m_Impl->Run(dimension, size, deviceLabels, numberOfCells, m_FindAdjacentPairs, out); });
 }
 
 Status

@@ -65,9 +65,15 @@ public:
    * them off in 3D: the summary is then the same except that adjacentPairs is empty, and the call does without the
    * neighbour comparisons, the sort and two of its three downloads. */
   void
-  SetFindAdjacentPairs(bool find);
+  SetFindAdjacentPairs(bool find)
+  {
+    m_FindAdjacentPairs = find;
+  }
   bool
-  GetFindAdjacentPairs() const;
+  GetFindAdjacentPairs() const
+  {
+    return m_FindAdjacentPairs;
+  }
 
   /** Test hook: copies host labels into a device buffer owned by this summarizer (kept until the next upload). */
   Status
@@ -90,6 +96,7 @@ public:
 private:
   struct Impl;
   Impl * m_Impl;
+  bool   m_FindAdjacentPairs{ true };
 };
 
 /** LabelSummarizer::Summarize through one process-wide summarizer (serialised by a mutex); a caller that summarizes

@@ -35,30 +35,14 @@ BuiltWithoutCuda()
 
 struct LabelSummarizer::Impl
 {
-  bool findPairs{ true };
 };
 
 LabelSummarizer::LabelSummarizer()
-  : m_Impl(new Impl)
+  : m_Impl(nullptr)
 {
 }
 
-LabelSummarizer::~LabelSummarizer()
-{
-  delete m_Impl;
-}
-
-void
-LabelSummarizer::SetFindAdjacentPairs(bool find)
-{
-  m_Impl->findPairs = find;
-}
-
-bool
-LabelSummarizer::GetFindAdjacentPairs() const
-{
-  return m_Impl->findPairs;
-}
+LabelSummarizer::~LabelSummarizer() = default;
 
 Status
 LabelSummarizer::Summarize(unsigned int, const size_t *, const int32_t *, size_t, LabelSummary &)
