@@ -48,6 +48,7 @@
  * order, summed in that order by one warp per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
  * fixed-shape (deterministic) reduction. */
 #include "dmrCVTBackend.h"
+#include "dmrContractionSums.h"
 #include "dmrCudaUtils.cuh"
 #include "dmrNeighbourhood.h"
 
@@ -1076,16 +1077,7 @@ BlockSumsKernel(GridParams g, BlockGrid bg, const float * density, double * mass
         {
           x[D - 1] = static_cast<double>(z) * g.spacing[D - 1];
         }
-        for (int32_t i = lo[0]; i < hi[0]; ++i)
-        {
-          x[0] = static_cast<double>(i) * g.spacing[0];
-          const double w = density[row + i];
-          m += w;
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            moment[k] += w * x[k];
-          }
-        }
+        AddRowToBlockSums<D>(density + row, lo[0], hi[0], g.spacing[0], x, m, moment);
       }
     }
     mass[b] = m;

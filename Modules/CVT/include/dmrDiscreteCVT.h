@@ -18,6 +18,7 @@
 #ifndef dmrDiscreteCVT_h
 #define dmrDiscreteCVT_h
 
+#include "dmrContractionSums.h"
 #include "dmrGrid.h"
 #include "dmrNeighbourhood.h"
 #include "dmrWorkerTeam.h"
@@ -313,16 +314,7 @@ public:
         double mass = masses[b];
         double moment[D];
         std::copy_n(&centroids[b * D], D, moment);
-        for (; i < end; ++i)
-        {
-          x[0] = static_cast<double>(i) * m_Grid.spacing[0];
-          const double w = m_Density[rowStart + i];
-          mass += w;
-          for (unsigned int k = 0; k < D; ++k)
-          {
-            moment[k] += w * x[k];
-          }
-        }
+        AddRowToBlockSums<D>(m_Density + rowStart, i, end, m_Grid.spacing[0], x, mass, moment);
         masses[b] = mass;
         std::copy_n(moment, D, &centroids[b * D]);
       });
