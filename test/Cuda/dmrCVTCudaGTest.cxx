@@ -28,6 +28,8 @@
 #include <cmath>
 #include <cstdlib>
 #include <iostream>
+#include <limits>
+#include <string>
 #include <random>
 
 namespace
@@ -140,8 +142,32 @@ ExpectConsistentLabels(const itk::dmr::Grid<D> &  grid,
   EXPECT_NEAR(gpu.Energy(), reference.energy, 1e-9 * reference.energy);
 }
 
+/** How the GPU optimiser lays out its work (the settings that must not change its results). */
+struct SweepLayout
+{
+  bool         shortLabels;     // SetShortLabels
+  unsigned int slots;           // SetCellSlots
+  unsigned int pixelsPerThread; // SetPixelsPerProposalThread
+  std::string
+  Name() const
+  {
+    return std::string(shortLabels ? "16-bit labels" : "32-bit labels") + ", " +
+           (slots == std::numeric_limits<unsigned int>::max() ? std::string("default") : std::to_string(slots)) +
+           " slots per cell, " + std::to_string(pixelsPerThread) + " pixels per proposal thread (0: automatic)";
+  }
+};
+
+/** The layouts the label tests run: the defaults on both label widths, two slots per cell (most batches overflow
+ * them) with two pixels per proposal thread, and the allocation pass without slots with one pixel per thread. */
+constexpr unsigned int defaultSlots = std::numeric_limits<unsigned int>::max(); // SetCellSlots' default
+const SweepLayout      sweepLayouts[] = { { true, defaultSlots, 0 },
+                                          { false, defaultSlots, 0 },
+                                          { true, 2, 2 },
+                                          { true, 0, 1 } };
+
 /** Contraction on the CPU, then sweep by sweep (Optimize with one sweep, epsilon 0) on both back-ends from the same
- * state, up to `sweeps` sweeps or convergence; then a warm start with `changed` the same way. */
+ * state, up to `sweeps` sweeps or convergence; then a warm start with `changed` the same way. The cells whose
+ * entries overflowed their slots are counted in slotOverflows. */
 template <unsigned int D>
 void
 ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
@@ -150,8 +176,11 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
                     size_t                     numberOfCells,
                     unsigned int               blockSize,
                     size_t                     sweeps,
-                    bool                       shortLabels)
+                    const SweepLayout &        layout,
+                    size_t &                   slotOverflows)
 {
+  const bool shortLabels = layout.shortLabels;
+  slotOverflows = 0;
   itk::dmr::DiscreteCVT<D> cpu;
   cpu.SetDensity(grid, density.data(), nullptr);
   cpu.ContractionInitialize(numberOfCells, blockSize);
@@ -159,6 +188,8 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
 
   CVTSwapOptimizer gpu;
   gpu.SetShortLabels(shortLabels);
+  gpu.SetCellSlots(layout.slots);
+  gpu.SetPixelsPerProposalThread(layout.pixelsPerThread);
   ASSERT_TRUE(Ok(gpu.SetGrid(D, grid.size.data(), grid.spacing.data())));
   ASSERT_TRUE(Ok(gpu.SetDensity(density.data(), false)));
   ASSERT_TRUE(Ok(gpu.SetLabels(cpu.GetLabels().data(), numberOfCells, false)));
@@ -180,6 +211,7 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
       EXPECT_EQ(g.rejectedBatches, c.rejectedBatches) << when;
       EXPECT_LE(g.energyAfter, g.energyBefore) << when << ": the energy rose";
       ExpectSameState<D>(cpu, gpu, when);
+      slotOverflows += g.slotOverflows;
       totalSwaps += g.swaps;
       totalRejected += g.rejectedBatches;
       if (g.swaps == 0)
@@ -213,6 +245,35 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
   EXPECT_LE(g.energyAfter, g.energyBefore);
   ExpectSameState<D>(cpu, gpu, "converged");
   ExpectConsistentLabels<D>(grid, changed, gpu, numberOfCells);
+  slotOverflows += g.slotOverflows;
+}
+
+/** ExpectGpuFollowsCpu on every layout; the slots must overflow where there are two per cell (so that the scan
+ * that collects the entries of a full cell is exercised) and never where there are none. */
+template <unsigned int D>
+void
+ExpectGpuFollowsCpuInEveryLayout(const itk::dmr::Grid<D> &  grid,
+                                 const std::vector<float> & density,
+                                 const std::vector<float> & changed,
+                                 size_t                     numberOfCells,
+                                 unsigned int               blockSize,
+                                 size_t                     sweeps)
+{
+  for (const auto & layout : sweepLayouts)
+  {
+    SCOPED_TRACE(layout.Name());
+    size_t overflows = 0;
+    ExpectGpuFollowsCpu<D>(grid, density, changed, numberOfCells, blockSize, sweeps, layout, overflows);
+    std::cout << layout.Name() << ": " << overflows << " cells overflowed their slots" << std::endl;
+    if (layout.slots == 0)
+    {
+      EXPECT_EQ(overflows, 0u);
+    }
+    if (layout.slots == 2)
+    {
+      EXPECT_GT(overflows, 0u);
+    }
+  }
 }
 
 TEST(CVTCuda, GpuLabelsEqualCpuLabels2D)
@@ -221,11 +282,7 @@ TEST(CVTCuda, GpuLabelsEqualCpuLabels2D)
   const itk::dmr::Grid<2> grid(std::array<size_t, 2>{ 128, 96 }, std::array<double, 2>{ 1.0, 1.3 });
   const auto              density = BumpAndRing<2>(grid, { 40.0, 50.0 });
   const auto              changed = BumpAndRing<2>(grid, { 43.0, 52.0 });
-  for (const bool shortLabels : { true, false }) // the sweeps on the 16-bit copy of the labels, and on the labels
-  {
-    SCOPED_TRACE(shortLabels ? "16-bit labels" : "32-bit labels");
-    ExpectGpuFollowsCpu<2>(grid, density, changed, 40, 1, 60, shortLabels);
-  }
+  ExpectGpuFollowsCpuInEveryLayout<2>(grid, density, changed, 40, 1, 60);
 }
 
 TEST(CVTCuda, GpuLabelsEqualCpuLabels3D)
@@ -234,11 +291,7 @@ TEST(CVTCuda, GpuLabelsEqualCpuLabels3D)
   const itk::dmr::Grid<3> grid(std::array<size_t, 3>{ 48, 40, 32 }, std::array<double, 3>{ 1.0, 1.2, 1.5 });
   const auto              density = BumpAndRing<3>(grid, { 18.0, 20.0, 24.0 });
   const auto              changed = BumpAndRing<3>(grid, { 20.0, 21.0, 23.0 });
-  for (const bool shortLabels : { true, false })
-  {
-    SCOPED_TRACE(shortLabels ? "16-bit labels" : "32-bit labels");
-    ExpectGpuFollowsCpu<3>(grid, density, changed, 200, 2, 40, shortLabels);
-  }
+  ExpectGpuFollowsCpuInEveryLayout<3>(grid, density, changed, 200, 2, 40);
 }
 
 TEST(CVTCuda, HalvedBatchesGiveTheCpuLabels)
@@ -478,8 +531,8 @@ TEST(CVTCuda, BenchmarkWarmStart256x256x132)
   ASSERT_TRUE(Ok(gpu.Optimize(0.0, 100000, r)));
   auto t2 = Clock::now();
   std::cout << "GPU SetLabels " << ms(t0, t1) << " ms; cold Optimize " << ms(t1, t2) << " ms, " << r.sweeps
-            << " sweeps, " << r.swaps << " swaps, " << r.rejectedBatches << " rejected, E " << r.energyBefore << " -> "
-            << r.energyAfter << std::endl;
+            << " sweeps, " << r.swaps << " swaps, " << r.rejectedBatches << " rejected, " << r.slotOverflows
+            << " slot overflows, E " << r.energyBefore << " -> " << r.energyAfter << std::endl;
   std::vector<int32_t> converged(grid.numberOfPixels);
   ASSERT_TRUE(Ok(gpu.DownloadLabels(converged.data())));
   const auto upload = changed; // host density of the next iteration (the registration passes a device pointer)
@@ -496,8 +549,8 @@ TEST(CVTCuda, BenchmarkWarmStart256x256x132)
     auto t3 = Clock::now();
     std::cout << "warm start " << repeat << ": density upload " << ms(t0, t1) << " ms, KeepLabels " << ms(t1, t2)
               << " ms, Optimize " << ms(t2, t3) << " ms (" << r.sweeps << " sweeps, " << r.swaps << " swaps, "
-              << r.rejectedBatches << " rejected, " << ms(t2, t3) / std::max<size_t>(1, r.sweeps) << " ms/sweep)"
-              << std::endl;
+              << r.rejectedBatches << " rejected, " << r.slotOverflows << " slot overflows, "
+              << ms(t2, t3) / std::max<size_t>(1, r.sweeps) << " ms/sweep)" << std::endl;
   }
   {
     t0 = Clock::now();

@@ -17,10 +17,12 @@
  *=========================================================================*/
 /** CUDA kernels and launchers of the CVT swap optimisation (see dmrCVTBackend.h and dmr::DiscreteCVT<D>).
  *
- * One sub-sweep (one parity colour) is a fixed chain of five launches without a host round trip:
- *  1. Propose: one thread per pixel of the colour, against the frozen labels (the rule of DiscreteCVT::BestSwap);
- *     appends its proposal (one atomic per warp) and counts it for its two cells, listing the touched cells. Two
- *     counter sets alternate between batches: Propose also clears the previous batch's set.
+ * One sub-sweep (one parity colour) is a fixed chain of three launches without a host round trip (five without
+ * the cells' slots, SetCellSlots(0)):
+ *  1. Propose: one thread per pixel of the colour (two on large colours), against the frozen labels (the rule of
+ *     DiscreteCVT::BestSwap); appends its proposal (one atomic per warp) and counts it for its two cells, listing the
+ *     touched cells and placing the two entries in the cells' slots (CellSlots). Two counter sets alternate between
+ *     batches: Propose also clears the previous batch's set.
  *     A pixel is evaluated only when one of its cells (its own, its face neighbours') changed since the colour's
  *     previous batch: every proposal stamps its two cells with the batch number (SweepState::phase), which covers
  *     every commit and every proposal a halving dropped. A pixel with no stamped cell has the inputs of its previous
@@ -29,10 +31,11 @@
  *     The pixels to evaluate are queued per block in shared memory and evaluated by consecutive threads (full warps).
  *     With at most 65536 cells the sweeps read a 16-bit copy of the labels, kept by the commits (half the traffic;
  *     for 256 x 256 x 132 it stays in L2).
- *  2. Allocate/Scatter: for each touched cell, its segment of (proposal, side) entries, keyed by pixel.
+ *  2. Without slots, Allocate/Scatter: for each touched cell, its segment of (proposal, side) entries, keyed by pixel.
  *  3. Cell: one warp per touched cell orders its entries by key (by rank; pixel order is the CPU's proposal order)
  *     and sums the deltas of mass, first moment about the old centroid and second moment in that order
- *     (DiscreteCVT::JointEnergyChange's order).
+ *     (DiscreteCVT::JointEnergyChange's order). A cell with more entries than slots finds the rest in the batch's
+ *     overflow list.
  *  4. DecideCommit: every block reduces the cells' terms to the joint change dE in one fixed order (so all blocks
  *     agree) and, if dE < 0, commits its share: labels, masses, centroids; block 0 records energy and swap count.
  * The sweeps of an Optimize call are one CUDA graph, captured once and replayed: a conditional while node around a
@@ -42,7 +45,7 @@
  * A rejected batch halts the rest of the sweep on the device (every later kernel of the sweep returns at once);
  * the host sees it at the end of the sweep, halves the batch like the CPU (sorted by gain, ties by pixel) and
  * resumes with the next colour (Count, Allocate, Scatter, Cell, Decide, Commit on its sorted halves, entries keyed by
- * proposal index). Counts stay on the device: grid-stride kernels read them from SweepState.
+ * proposal index; no slots). Counts stay on the device: grid-stride kernels read them from SweepState.
  *
  * Statistics (SetLabels/KeepLabels): a stable radix sort of the pixels by label gives each cell's pixels in pixel
  * order, summed in that order by one warp per cell (DiscreteCVT::RecomputeStatistics's order). The energy is a
@@ -58,6 +61,7 @@
 #include <algorithm>
 #include <limits>
 #include <sstream>
+#include <stdexcept>
 
 namespace itk
 {
@@ -93,8 +97,8 @@ struct BatchCounts
 {
   int32_t numberOfProposals;
   int32_t numberOfTouched;
-  int32_t cursor; // next free entry of the cells' segments
-  int32_t unused;
+  int32_t cursor;     // next free entry of the cells' segments
+  int32_t overflowed; // entries beyond their cells' slots (CellSlots::overflow)
 };
 
 /** Device-side state of the optimisation (the energy) and of the current sweep; read by the host once per sweep.
@@ -120,6 +124,20 @@ struct SweepState
   int32_t            sweeps;
   int32_t            maximumSweeps;
   int32_t            stop;
+  unsigned long long slotOverflows; // cells whose entries of a batch outnumbered their slots (see CellSlots)
+};
+
+/** The sweep path's per-cell slots: entry k of a batch for cell c (k: the cell's count when the entry was counted)
+ * at c x capacity + k, with its sort key, written by ProposeKernel, so that no allocation pass (AllocateKernel,
+ * ScatterKernel) is needed. The entries beyond a cell's slots go to the batch's overflow list, which CellKernel scans
+ * for the cells that have more entries than slots. capacity 0: every batch goes through the allocation pass. */
+struct CellSlots
+{
+  int32_t *  entries;
+  uint32_t * keys;
+  int32_t *  sorted;
+  int32_t *  overflow; // the batch's entries that found their cells' slots full (BatchCounts::overflowed of them)
+  int32_t    capacity;
 };
 
 /** Outcome of the statistics recomputation. */
@@ -228,7 +246,9 @@ ColourIndex(const GridParams & g, const ColourParams & cp, int32_t q, int32_t * 
 
 /** The sweep's kernels are launched as programmatic dependent launches (LaunchAfter): a kernel may be scheduled
  * while its predecessor still runs, and waits here, before touching memory, until the predecessor has finished and
- * its writes are visible. The order of the work is unchanged; the gap between the many small kernels shrinks. */
+ * its writes are visible. The order of the work is unchanged; the gap between the many small kernels shrinks.
+ * (Allowing the next kernel's launch right after the wait, cudaTriggerProgrammaticLaunchCompletion, made the 3D sweeps
+ * 1-2 % slower on the H100.) */
 __device__ inline void
 WaitForPrevious()
 {
@@ -271,6 +291,7 @@ ResetSet(size_t thread, size_t threads, BatchCounts & batch, int32_t * set, int3
     }
     batch.numberOfTouched = 0;
     batch.cursor = 0;
+    batch.overflowed = 0;
   }
   for (size_t c = thread; c < 2 * static_cast<size_t>(nCells); c += threads)
   {
@@ -304,16 +325,33 @@ ResetBatchKernel(SweepState * state, int32_t * counters, int32_t nCells)
            true);
 }
 
-/** Touches the cells of proposal `prop`: counts its two entries and lists cells touched for the first time. */
+/** Touches the cells of proposal number `index`, `prop`: counts its two entries, lists cells touched for the first
+ * time and places the entries in their cells' slots while there is room. */
 __device__ inline void
-CountProposal(const Proposal & prop, BatchCounts & batch, int32_t * count, int32_t * touched)
+CountProposal(const Proposal &  prop,
+              int32_t           index,
+              BatchCounts &     batch,
+              int32_t *         count,
+              int32_t *         touched,
+              const CellSlots & slots)
 {
   for (int side = 0; side < 2; ++side)
   {
     const int32_t c = side == 0 ? prop.from : prop.to;
-    if (atomicAdd(&count[c], 1) == 0)
+    const int32_t k = atomicAdd(&count[c], 1);
+    if (k == 0)
     {
       touched[atomicAdd(&batch.numberOfTouched, 1)] = c;
+    }
+    if (k < slots.capacity)
+    {
+      const size_t at = static_cast<size_t>(c) * static_cast<size_t>(slots.capacity) + static_cast<size_t>(k);
+      slots.entries[at] = 2 * index + side;
+      slots.keys[at] = prop.pixel;
+    }
+    else if (slots.capacity > 0)
+    {
+      slots.overflow[atomicAdd(&batch.overflowed, 1)] = 2 * index + side;
     }
   }
 }
@@ -322,12 +360,14 @@ CountProposal(const Proposal & prop, BatchCounts & batch, int32_t * count, int32
  * particular order: the cell sums sort their entries by pixel) and counting them per cell.
  * The batch uses the counter set state->nextParity (it becomes state->parity); the set of the previous batch, whose
  * kernels have all finished, is cleared here for the next one.
- * At most 48 registers (5 resident blocks per SM instead of 4 at 56; the 3D kernel spills 28 bytes): the latency-bound
- * kernel gains from the extra warps (3D warm-start sweep 0.352 -> 0.343 ms, cold Optimize 122 -> 117 ms on the H100;
- * 6 blocks measured the same as 5). */
-template <unsigned int D, typename TLabel>
+ * Every thread takes K pixels of the colour (K x Threads per block), whose loads it issues together: the kernel is
+ * bound by the latency of its chain of dependent loads (labels, stamps, cell sums, connectivity), so K pixels per
+ * thread keep K times the loads in flight (3D warm-start sweep 0.345 -> 0.316 ms on the H100, against one pixel per
+ * thread on 5 blocks per SM). K = 1 when the colour has too few pixels to fill the device twice. At most 64 registers
+ * (4 resident blocks per SM): K = 2 needs them without spilling. */
+template <unsigned int D, typename TLabel, int K>
 __global__ void
-__launch_bounds__(Threads, 5) ProposeKernel(GridParams     g,
+__launch_bounds__(Threads, 4) ProposeKernel(GridParams     g,
                                             ColourParams   cp,
                                             const TLabel * labels,
                                             const float *  density,
@@ -339,6 +379,7 @@ __launch_bounds__(Threads, 5) ProposeKernel(GridParams     g,
                                             int32_t *      counters,
                                             int32_t *      touched,
                                             int32_t *      cellStamp,
+                                            CellSlots      slots,
                                             int32_t        nCells)
 {
   WaitForPrevious();
@@ -361,7 +402,7 @@ __launch_bounds__(Threads, 5) ProposeKernel(GridParams     g,
            counters + static_cast<size_t>(1 - set) * 2 * static_cast<size_t>(nCells),
            nCells,
            false);
-  // Two passes over the block's pixels. The first, one thread per pixel, finds the pixels to evaluate (boundary
+  // Two passes over the block's pixels. The first, one thread per K pixels, finds the pixels to evaluate (boundary
   // pixels with a changed cell) and queues them in shared memory; the second evaluates the queue with consecutive
   // threads, so the warps that compute the energies and the connectivity are full (most pixels are skipped).
   struct Queued
@@ -372,114 +413,164 @@ __launch_bounds__(Threads, 5) ProposeKernel(GridParams     g,
     int32_t idx[D];
     int32_t candidates[2 * D];
   };
-  __shared__ Queued  queue[Threads];
+  __shared__ Queued  queue[K * Threads];
   __shared__ int32_t queued;
   if (threadIdx.x == 0)
   {
     queued = 0;
   }
   __syncthreads();
-  if (thread < static_cast<size_t>(cp.count))
   {
-    int32_t       idx[D];
-    const int32_t p = ColourIndex<D>(g, cp, static_cast<int32_t>(thread), idx);
-    const int32_t own = static_cast<int32_t>(labels[p]);
-    // DiscreteCVT::NeighbourCells: distinct other labels of the face neighbours, axis by axis, lower then upper
-    int32_t      candidates[2 * D];
-    unsigned int nc = 0;
-    for (unsigned int k = 0; k < D; ++k)
+    // pixel j of this thread: number blockIdx.x x K x Threads + j x Threads + threadIdx.x of the colour
+    const size_t first = blockIdx.x * static_cast<size_t>(K * Threads) + threadIdx.x;
+    bool         inside[K];
+    int32_t      idx[K][D], p[K], own[K], nb[K][2 * D];
+#pragma unroll
+    for (int j = 0; j < K; ++j)
     {
-      const int32_t lower = idx[k] > 0 ? p - g.stride[k] : p;
-      const int32_t upper = idx[k] + 1 < g.size[k] ? p + g.stride[k] : p;
-      for (int s = 0; s < 2; ++s)
+      const size_t q = first + static_cast<size_t>(j) * Threads;
+      inside[j] = q < static_cast<size_t>(cp.count);
+      p[j] = inside[j] ? ColourIndex<D>(g, cp, static_cast<int32_t>(q), idx[j]) : 0;
+      if (!inside[j])
       {
-        const int32_t l = static_cast<int32_t>(labels[s == 0 ? lower : upper]);
-        bool          known = l == own;
-        for (unsigned int j = 0; j < nc; ++j)
+        for (unsigned int k = 0; k < D; ++k)
         {
-          known |= candidates[j] == l;
+          idx[j][k] = 0;
         }
-        candidates[nc] = l;
-        nc += known ? 0u : 1u;
       }
+    }
+    // the labels of the pixels and of their face neighbours (the pixel's own where a neighbour is outside), all
+    // loads issued before any is used
+#pragma unroll
+    for (int j = 0; j < K; ++j)
+    {
+      own[j] = static_cast<int32_t>(labels[p[j]]);
+      for (unsigned int k = 0; k < D; ++k)
+      {
+        nb[j][2 * k] = static_cast<int32_t>(labels[idx[j][k] > 0 ? p[j] - g.stride[k] : p[j]]);
+        nb[j][2 * k + 1] = static_cast<int32_t>(labels[idx[j][k] + 1 < g.size[k] ? p[j] + g.stride[k] : p[j]]);
+      }
+    }
+    // DiscreteCVT::NeighbourCells: distinct other labels of the face neighbours, axis by axis, lower then upper,
+    // compacted in place (constant indices only, so that the arrays stay in registers)
+    unsigned int nc[K];
+#pragma unroll
+    for (int j = 0; j < K; ++j)
+    {
+      nc[j] = 0;
+#pragma unroll
+      for (unsigned int s = 0; s < 2 * D; ++s)
+      {
+        const int32_t l = nb[j][s];
+        bool          known = l == own[j];
+#pragma unroll
+        for (unsigned int c = 0; c < s; ++c)
+        {
+          known |= c < nc[j] && nb[j][c] == l;
+        }
+#pragma unroll
+        for (unsigned int t = 0; t <= s; ++t)
+        {
+          nb[j][t] = t == nc[j] ? l : nb[j][t];
+        }
+        nc[j] += known ? 0u : 1u;
+      }
+      nc[j] = inside[j] ? nc[j] : 0u;
     }
     // Skip a pixel none of whose cells (its own, the candidates) changed or took part in a proposal since the
     // colour's previous batch: its inputs are those of its previous evaluation, which found no swap.
-    bool changed = false;
-    if (nc > 0)
+    bool changed[K];
+#pragma unroll
+    for (int j = 0; j < K; ++j)
     {
-      changed = cellStamp[own] >= since;
-      for (unsigned int c = 0; c < nc; ++c)
+      changed[j] = false;
+      if (nc[j] > 0)
       {
-        changed |= cellStamp[candidates[c]] >= since;
+        changed[j] = cellStamp[own[j]] >= since;
+#pragma unroll
+        for (unsigned int c = 0; c < 2 * D; ++c)
+        {
+          changed[j] |= c < nc[j] && cellStamp[nb[j][c]] >= since;
+        }
       }
     }
-    if (changed)
+#pragma unroll
+    for (int j = 0; j < K; ++j)
     {
-      Queued & e = queue[atomicAdd(&queued, 1)];
-      e.p = p;
-      e.own = own;
-      e.nc = static_cast<int32_t>(nc);
-      for (unsigned int k = 0; k < D; ++k)
+      if (changed[j])
       {
-        e.idx[k] = idx[k];
-      }
-      for (unsigned int c = 0; c < 2 * D; ++c)
-      {
-        e.candidates[c] = candidates[c];
+        Queued & e = queue[atomicAdd(&queued, 1)];
+        e.p = p[j];
+        e.own = own[j];
+        e.nc = static_cast<int32_t>(nc[j]);
+        for (unsigned int k = 0; k < D; ++k)
+        {
+          e.idx[k] = idx[j][k];
+        }
+        for (unsigned int c = 0; c < 2 * D; ++c)
+        {
+          e.candidates[c] = nb[j][c];
+        }
       }
     }
   }
   __syncthreads();
-  bool     flag = false;
-  Proposal prop{};
-  if (static_cast<int32_t>(threadIdx.x) < queued)
+  const int32_t total = queued; // the same for the whole block: every lane takes part in each round's ballot
+  for (int32_t round = 0; round < total; round += static_cast<int32_t>(Threads))
   {
-    const Queued & e = queue[threadIdx.x];
-    const int32_t  p = e.p, own = e.own;
-    const double   w = static_cast<double>(density[p]);
-    const double   mi = mass[own];
-    if (mi - w > 0.0)
+    bool          flag = false;
+    Proposal      prop{};
+    const int32_t at = round + static_cast<int32_t>(threadIdx.x);
+    if (at < total)
     {
-      double x[D];
-      PositionOf<D>(g, e.idx, x);
-      double  best = -tolerance * w;
-      int32_t bestLabel = own;
-      for (int32_t c = 0; c < e.nc; ++c)
+      const Queued & e = queue[at];
+      const int32_t  p = e.p, own = e.own;
+      const double   w = static_cast<double>(density[p]);
+      const double   mi = mass[own];
+      if (mi - w > 0.0)
       {
-        const int32_t j = e.candidates[c];
-        const double  dE = SwapEnergyChange<D>(w, x, mi, &centroid[own * D], mass[j], &centroid[j * D]);
-        if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
+        double x[D];
+        PositionOf<D>(g, e.idx, x);
+        double  best = -tolerance * w;
+        int32_t bestLabel = own;
+        for (int32_t c = 0; c < e.nc; ++c)
         {
-          best = dE;
-          bestLabel = j;
+          const int32_t j = e.candidates[c];
+          const double  dE = SwapEnergyChange<D>(w, x, mi, &centroid[own * D], mass[j], &centroid[j * D]);
+          if (dE < best || (dE == best && bestLabel != own && j < bestLabel))
+          {
+            best = dE;
+            bestLabel = j;
+          }
+        }
+        if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, e.idx, own))
+        {
+          flag = true;
+          prop = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
+          // both cells change if the swap is committed; if it is not (halving), this pixel must propose again
+          cellStamp[own] = phase;
+          cellStamp[bestLabel] = phase;
         }
       }
-      if (bestLabel != own && RemovalKeepsCellConnected<D>(g, labels, p, e.idx, own))
-      {
-        flag = true;
-        prop = Proposal{ static_cast<uint32_t>(p), own, bestLabel, 0, -best };
-        // both cells change if the swap is committed; if it is not (halving), this pixel must propose again
-        cellStamp[own] = phase;
-        cellStamp[bestLabel] = phase;
-      }
     }
-  }
-  // one atomic per warp for the slots (every lane of the block is here)
-  const unsigned int want = __ballot_sync(0xffffffffu, flag);
-  if (flag)
-  {
-    BatchCounts &      batch = state->batch[set];
-    const unsigned int lane = threadIdx.x % 32;
-    const int          leader = __ffs(want) - 1;
-    int32_t            base = 0;
-    if (static_cast<int>(lane) == leader)
+    // one atomic per warp for the slots (every lane of the block is here)
+    const unsigned int want = __ballot_sync(0xffffffffu, flag);
+    if (flag)
     {
-      base = atomicAdd(&batch.numberOfProposals, __popc(want));
+      BatchCounts &      batch = state->batch[set];
+      const unsigned int lane = threadIdx.x % 32;
+      const int          leader = __ffs(want) - 1;
+      int32_t            base = 0;
+      if (static_cast<int>(lane) == leader)
+      {
+        base = atomicAdd(&batch.numberOfProposals, __popc(want));
+      }
+      base = __shfl_sync(want, base, leader);
+      const int32_t index = base + __popc(want & ((1u << lane) - 1u));
+      proposals[index] = prop;
+      CountProposal(
+        prop, index, batch, counters + static_cast<size_t>(set) * 2 * static_cast<size_t>(nCells), touched, slots);
     }
-    base = __shfl_sync(want, base, leader);
-    proposals[base + __popc(want & ((1u << lane) - 1u))] = prop;
-    CountProposal(prop, batch, counters + static_cast<size_t>(set) * 2 * static_cast<size_t>(nCells), touched);
   }
 }
 
@@ -497,7 +588,7 @@ CountKernel(SweepState * state, const Proposal * proposals, int32_t * counters, 
   const int32_t n = batch.numberOfProposals;
   for (int32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
   {
-    CountProposal(proposals[i], batch, count, touched);
+    CountProposal(proposals[i], i, batch, count, touched, CellSlots{});
   }
 }
 
@@ -554,7 +645,8 @@ ScatterKernel(SweepState *     state,
 }
 
 /** Per touched cell, one warp: the deltas of DiscreteCVT::JointEnergyChange summed in proposal order, and the
- * cell's term dQ - |dS|^2 / (m + dm) of the joint change.
+ * cell's term dQ - |dS|^2 / (m + dm) of the joint change. The cell's entries are in its segment (slots.capacity 0:
+ * placed by Allocate/Scatter) or in its slots (see CellSlots).
  * The cell's entries (a proposal touches a cell once, so their keys differ) are placed by the rank of their key into
  * `sorted`: the order of the CPU's proposals. The lanes then compute the terms w, w (x - r)_k and w |x - r|^2 of 32
  * entries at a time, and every lane adds them up in entry order from shuffles: the same products added in the same
@@ -571,12 +663,13 @@ CellKernel(GridParams       g,
            int32_t *        counters,
            const int32_t *  touched,
            const int32_t *  segment,
-           const int32_t *  entries,
-           const uint32_t * keys,
+           int32_t *        entries, // written here for a cell with more entries than slots
+           uint32_t *       keys,
            int32_t *        sorted,
            double *         deltaMass,
            double *         deltaMoment,
            double *         term,
+           CellSlots        slots,
            int32_t          nCells)
 {
   WaitForPrevious();
@@ -585,16 +678,76 @@ CellKernel(GridParams       g,
     return;
   }
   const int32_t *    count = CurrentSet(state, counters, nCells);
-  const int32_t      n = state->batch[state->parity].numberOfTouched;
+  BatchCounts &      batch = state->batch[state->parity];
+  const int32_t      n = batch.numberOfTouched;
   const unsigned int lane = threadIdx.x % 32;
   const int32_t      warps = static_cast<int32_t>(gridDim.x * blockDim.x / 32);
   for (int32_t j = static_cast<int32_t>((blockIdx.x * blockDim.x + threadIdx.x) / 32); j < n; j += warps)
   {
     const int32_t    c = touched[j];
-    const int32_t *  e = entries + segment[c];
-    const uint32_t * key = keys + segment[c];
-    int32_t *        out = sorted + segment[c];
     const int32_t    len = count[c];
+    const int32_t *  e = nullptr;
+    const uint32_t * key = nullptr;
+    int32_t *        out = nullptr;
+    if (slots.capacity == 0)
+    {
+      e = entries + segment[c];
+      key = keys + segment[c];
+      out = sorted + segment[c];
+    }
+    else if (len <= slots.capacity)
+    {
+      const size_t at = static_cast<size_t>(c) * static_cast<size_t>(slots.capacity);
+      e = slots.entries + at;
+      key = slots.keys + at;
+      out = slots.sorted + at;
+    }
+    else
+    {
+      // more entries than slots: a segment of the batch's entry arrays, filled with the cell's slots and then its
+      // entries from the overflow list (in list order; the ranks below order them by pixel)
+      const int32_t cap = slots.capacity;
+      int32_t       at = 0;
+      if (lane == 0)
+      {
+        at = atomicAdd(&batch.cursor, len);
+        atomicAdd(&state->slotOverflows, 1ull);
+      }
+      at = __shfl_sync(0xffffffffu, at, 0);
+      const size_t own = static_cast<size_t>(c) * static_cast<size_t>(cap);
+      for (int32_t k = static_cast<int32_t>(lane); k < cap; k += 32)
+      {
+        entries[at + k] = slots.entries[own + k];
+        keys[at + k] = slots.keys[own + k];
+      }
+      const int32_t listed = batch.overflowed;
+      int32_t       found = cap;
+      for (int32_t base = 0; base < listed; base += 32)
+      {
+        const int32_t i = base + static_cast<int32_t>(lane);
+        int32_t       entry = -1;
+        uint32_t      pixel = 0;
+        if (i < listed)
+        {
+          entry = slots.overflow[i];
+          const Proposal & prop = proposals[entry >> 1];
+          entry = ((entry & 1) ? prop.to : prop.from) == c ? entry : -1;
+          pixel = prop.pixel;
+        }
+        const unsigned int mine = __ballot_sync(0xffffffffu, entry >= 0);
+        if (entry >= 0)
+        {
+          const int32_t k = at + found + __popc(mine & ((1u << lane) - 1u));
+          entries[k] = entry;
+          keys[k] = pixel;
+        }
+        found += __popc(mine);
+      }
+      __syncwarp();
+      e = entries + at;
+      key = keys + at;
+      out = sorted + at;
+    }
     for (int32_t a = static_cast<int32_t>(lane); a < len; a += 32)
     {
       const uint32_t v = key[a];
@@ -1168,25 +1321,32 @@ struct CVTSwapOptimizer::Impl
   unsigned int numberOfColours{ 0 };
   int32_t      maxColourCount{ 0 };
   int          strideBlocks{ 1 };
+  int          multiProcessors{ 1 };
   double       tolerance{ 0.0 };
   // one non-blocking stream; a borrowed device input must be complete when it is passed
   cudaStream_t stream{ nullptr };
   SweepState * hostState{ nullptr }; // pinned: the per-sweep read-back
 
-  DeviceBuffer<float>            ownDensity;
-  const float *                  density{ nullptr };
-  DeviceBuffer<int32_t>          labels;
-  DeviceBuffer<uint16_t>         shortLabels; // 16-bit copy read by Propose when every label fits (useShortLabels)
-  bool                           useShortLabels{ false };
-  bool                           shortLabelsAllowed{ true };
-  bool                           hasLabels{ false };
-  DeviceBuffer<uint32_t>         iota, sortedKeys, sortedPixels;
-  size_t                         nCells{ 0 };
-  DeviceBuffer<double>           mass, centroid, deltaMass, deltaMoment, term, partial;
-  DeviceBuffer<int32_t>          counters, segment, touched, entries, sortedEntries, cellStart, cellEnd;
-  DeviceBuffer<int32_t>          cellStamp; // per cell: the last batch (SweepState::phase) it took part in
-  DeviceBuffer<Proposal>         proposals;
-  DeviceBuffer<uint32_t>         entryKeys;
+  DeviceBuffer<float>    ownDensity;
+  const float *          density{ nullptr };
+  DeviceBuffer<int32_t>  labels;
+  DeviceBuffer<uint16_t> shortLabels; // 16-bit copy read by Propose when every label fits (useShortLabels)
+  bool                   useShortLabels{ false };
+  bool                   shortLabelsAllowed{ true };
+  bool                   hasLabels{ false };
+  DeviceBuffer<uint32_t> iota, sortedKeys, sortedPixels;
+  size_t                 nCells{ 0 };
+  DeviceBuffer<double>   mass, centroid, deltaMass, deltaMoment, term, partial;
+  DeviceBuffer<int32_t>  counters, segment, touched, entries, sortedEntries, cellStart, cellEnd;
+  DeviceBuffer<int32_t>  cellStamp; // per cell: the last batch (SweepState::phase) it took part in
+  DeviceBuffer<Proposal> proposals;
+  DeviceBuffer<uint32_t> entryKeys;
+  // the sweeps' per-cell slots (CellSlots): slotCapacity entries per cell, fewer where the cells are many
+  DeviceBuffer<int32_t>          slotEntries, slotSorted, slotOverflow;
+  DeviceBuffer<uint32_t>         slotKeys;
+  unsigned int                   requestedSlots{ std::numeric_limits<unsigned int>::max() };
+  int32_t                        slotCapacity{ 0 };
+  unsigned int                   pixelsPerThread{ 0 }; // ProposeKernel's K; 0: chosen by the colour's size
   DeviceBuffer<SweepState>       state;
   DeviceBuffer<StatisticsReport> report;
   DeviceBuffer<uint8_t>          temp;
@@ -1194,7 +1354,7 @@ struct CVTSwapOptimizer::Impl
 
   // one whole sweep (all colours) as a CUDA graph, replayed every sweep; rebuilt when what it captured changes
   cudaGraphExec_t sweepGraph{ nullptr };
-  const void *    graphKey[6]{};
+  const void *    graphKey[8]{};
   bool            graphUnavailable{ false };
   // all the sweeps of an Optimize call as one graph: a conditional while node around a sweep and EndSweepKernel,
   // so the host does not wait for every sweep (falls back to sweepGraph where conditional nodes are unavailable)
@@ -1346,6 +1506,14 @@ struct CVTSwapOptimizer::Impl
       cellEnd.Resize(nCells);
       cellStamp.Resize(nCells);
     }
+    // the slots: requestedSlots per cell, at most as many in all as a batch can have entries (the size of the
+    // allocation pass's entry arrays; for 3000 cells on 256 x 256 x 132, 720 per cell)
+    const size_t capacity = std::min<size_t>(requestedSlots, std::max<size_t>(1, entries.Size() / nCells));
+    slotCapacity = static_cast<int32_t>(capacity);
+    slotEntries.Resize(capacity * nCells);
+    slotKeys.Resize(capacity * nCells);
+    slotSorted.Resize(capacity * nCells);
+    slotOverflow.Resize(capacity > 0 ? entries.Size() : 0); // at most every entry of a batch
     report.Resize(1);
     Check(cudaMemsetAsync(report.Data(), 0xFF, sizeof(StatisticsReport), stream), "cudaMemset");
     ValidateKernel<<<strideBlocks, Threads, 0, stream>>>(labels.Data(), n, cells, report.Data());
@@ -1445,8 +1613,12 @@ struct CVTSwapOptimizer::Impl
   void
   EnqueuePropose(const ColourParams & cp, const TLabel * labelsToRead)
   {
-    LaunchAfter(ProposeKernel<D, TLabel>,
-                Blocks(static_cast<size_t>(std::max(cp.count, 1)), Threads),
+    // two pixels per thread when that still gives the device two full rounds of blocks (4 per SM)
+    const size_t pixels = static_cast<size_t>(std::max(cp.count, 1));
+    const bool two = pixelsPerThread == 0 ? Blocks(pixels, 2 * Threads) >= static_cast<size_t>(2 * 4 * multiProcessors)
+                                          : pixelsPerThread == 2;
+    LaunchAfter(two ? ProposeKernel<D, TLabel, 2> : ProposeKernel<D, TLabel, 1>,
+                Blocks(pixels, two ? 2 * Threads : Threads),
                 Threads,
                 stream,
                 grid,
@@ -1461,15 +1633,57 @@ struct CVTSwapOptimizer::Impl
                 counters.Data(),
                 touched.Data(),
                 cellStamp.Data(),
+                Slots(),
                 static_cast<int32_t>(nCells));
     CheckLaunch("ProposeKernel");
   }
 
-  /** The cells' entries of the counted batch and their sums (Allocate, Scatter, Cell). byPixel: the batch is in no
-   * particular order (the sweep's), so the entries are ordered by pixel; otherwise by proposal index (halving). */
+  /** The sweep's slots (CellSlots), or none (capacity 0). */
+  CellSlots
+  Slots()
+  {
+    return CellSlots{ slotEntries.Data(), slotKeys.Data(), slotSorted.Data(), slotOverflow.Data(), slotCapacity };
+  }
+
+  /** The cells' entries of the counted batch and their sums (Cell; before it Allocate and Scatter unless the entries
+   * are in the slots). byPixel: the batch is in no particular order (the sweep's), so the entries are ordered by
+   * pixel; otherwise by proposal index (halving, which never uses the slots). */
   template <unsigned int D>
   void
-  EnqueueCellSums(bool byPixel)
+  EnqueueCellSums(bool byPixel, bool inSlots)
+  {
+    const auto cells = static_cast<int32_t>(nCells);
+    if (!inSlots)
+    {
+      EnqueueAllocation(byPixel);
+    }
+    LaunchAfter(CellKernel<D>,
+                strideBlocks,
+                128,
+                stream,
+                grid,
+                state.Data(),
+                proposals.Data(),
+                density,
+                mass.Data(),
+                centroid.Data(),
+                counters.Data(),
+                touched.Data(),
+                segment.Data(),
+                entries.Data(),
+                entryKeys.Data(),
+                sortedEntries.Data(),
+                deltaMass.Data(),
+                deltaMoment.Data(),
+                term.Data(),
+                inSlots ? Slots() : CellSlots{},
+                cells);
+    CheckLaunch("CellKernel");
+  }
+
+  /** Every touched cell's segment of the batch's entries, and the entries in them (Allocate, Scatter). */
+  void
+  EnqueueAllocation(bool byPixel)
   {
     const auto cells = static_cast<int32_t>(nCells);
     LaunchAfter(AllocateKernel,
@@ -1495,27 +1709,6 @@ struct CVTSwapOptimizer::Impl
                 cells,
                 byPixel ? 1 : 0);
     CheckLaunch("ScatterKernel");
-    LaunchAfter(CellKernel<D>,
-                strideBlocks,
-                128,
-                stream,
-                grid,
-                state.Data(),
-                proposals.Data(),
-                density,
-                mass.Data(),
-                centroid.Data(),
-                counters.Data(),
-                touched.Data(),
-                segment.Data(),
-                entries.Data(),
-                entryKeys.Data(),
-                sortedEntries.Data(),
-                deltaMass.Data(),
-                deltaMoment.Data(),
-                term.Data(),
-                cells);
-    CheckLaunch("CellKernel");
   }
 
   /** Halving path: joint change of the batch the host placed in `proposals`, and the decision (not committed). */
@@ -1533,7 +1726,7 @@ struct CVTSwapOptimizer::Impl
                 touched.Data(),
                 static_cast<int32_t>(nCells));
     CheckLaunch("CountKernel");
-    EnqueueCellSums<D>(false);
+    EnqueueCellSums<D>(false, false);
     LaunchAfter(DecideKernel,
                 1,
                 Threads,
@@ -1572,7 +1765,7 @@ struct CVTSwapOptimizer::Impl
   EnqueueBatch(const ColourParams & cp)
   {
     EnqueuePropose<D>(cp);
-    EnqueueCellSums<D>(true);
+    EnqueueCellSums<D>(true, slotCapacity > 0);
     LaunchAfter(DecideCommitKernel<D>,
                 strideBlocks,
                 Threads,
@@ -1655,17 +1848,20 @@ struct CVTSwapOptimizer::Impl
   void
   ForgetStaleGraphs()
   {
-    const void * key[6] = { density,
+    const void * key[8] = { density,
                             mass.Data(),
                             temp.Data(),
                             labels.Data(),
                             reinterpret_cast<const void *>(static_cast<uintptr_t>(nCells)),
-                            ShortLabels() };
-    if ((sweepGraph || loopGraph) && !std::equal(key, key + 6, graphKey))
+                            ShortLabels(),
+                            slotEntries.Data(),
+                            reinterpret_cast<const void *>(static_cast<uintptr_t>(slotCapacity) |
+                                                           static_cast<uintptr_t>(pixelsPerThread) << 32) };
+    if ((sweepGraph || loopGraph) && !std::equal(key, key + 8, graphKey))
     {
       DropGraph();
     }
-    std::copy(key, key + 6, graphKey);
+    std::copy(key, key + 8, graphKey);
   }
 
   /** Captures the launches of `enqueue` into `graph` (after `dependency` when not null); false on any failure. */
@@ -1874,6 +2070,7 @@ struct CVTSwapOptimizer::Impl
     energy = hostState->energy;
     result.sweeps = static_cast<size_t>(hostState->sweeps);
     result.swaps = static_cast<size_t>(hostState->totalSwaps);
+    result.slotOverflows = static_cast<size_t>(hostState->slotOverflows);
     result.energyAfter = energy;
   }
 };
@@ -1951,6 +2148,7 @@ CVTSwapOptimizer::SetGrid(unsigned int dimension, const size_t * size, const dou
     Check(cudaGetDevice(&device), "cudaGetDevice");
     Check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device), "cudaDeviceGetAttribute");
     m.strideBlocks = 2 * sms; // grid-stride kernels: their work is known on the device only
+    m.multiProcessors = sms;
     if (!m.stream)
     {
       Check(cudaStreamCreateWithFlags(&m.stream, cudaStreamNonBlocking), "cudaStreamCreateWithFlags");
@@ -2168,6 +2366,22 @@ CVTSwapOptimizer::SetShortLabels(bool enabled)
   m_Impl->shortLabelsAllowed = enabled;
 }
 
+void
+CVTSwapOptimizer::SetCellSlots(unsigned int capacity)
+{
+  m_Impl->requestedSlots = capacity;
+}
+
+void
+CVTSwapOptimizer::SetPixelsPerProposalThread(unsigned int pixels)
+{
+  if (pixels > 2)
+  {
+    throw std::invalid_argument("CVTSwapOptimizer::SetPixelsPerProposalThread: 0 (automatic), 1 or 2");
+  }
+  m_Impl->pixelsPerThread = pixels;
+}
+
 size_t
 CVTSwapOptimizer::AllocatedBytes() const
 {
@@ -2189,6 +2403,10 @@ CVTSwapOptimizer::AllocatedBytes() const
                  m.touched,
                  m.entries,
                  m.sortedEntries,
+                 m.slotEntries,
+                 m.slotKeys,
+                 m.slotSorted,
+                 m.slotOverflow,
                  m.cellStart,
                  m.cellEnd,
                  m.cellStamp,

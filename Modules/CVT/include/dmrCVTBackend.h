@@ -41,6 +41,7 @@ struct CVTSwapResult
   size_t rejectedBatches{ 0 };
   double energyBefore{ 0 };
   double energyAfter{ 0 };
+  size_t slotOverflows{ 0 }; // GPU only: cells whose entries of a batch outnumbered their slots (SetCellSlots)
 };
 
 /** \brief The swap optimisation of dmr::DiscreteCVT<D> (paper Algorithm 1 with the parity-colour two-phase rule)
@@ -106,6 +107,17 @@ public:
    * Same results. Default on. */
   void
   SetShortLabels(bool enabled);
+  /** The entries of a sweep's batch are placed in `capacity` slots per cell as the proposals are made, at most as
+   * many in all as a batch can have entries (two per pixel of the largest colour): with the default (the largest
+   * unsigned value), that many. The entries beyond a cell's slots go to a list of the batch, which is scanned for the
+   * cells that have more (CVTSwapResult::slotOverflows counts those). 0: every batch goes through an allocation pass
+   * (two more kernels per colour). From the next SetLabels or KeepLabels on. Same results. */
+  void
+  SetCellSlots(unsigned int capacity);
+  /** Pixels per thread of the proposal kernel: 1 or 2, or 0 (default) for 2 on the colours large enough to give the
+   * device two full rounds of blocks that way, 1 on the others. Same results. Throws std::invalid_argument above 2. */
+  void
+  SetPixelsPerProposalThread(unsigned int pixels);
 
   /** Copies the labels to host memory (one value per pixel). */
   Status

@@ -17,6 +17,7 @@
  *=========================================================================*/
 /** CVT swap optimiser of a build without CUDA (DMR_USE_CUDA=OFF): every call fails with "built without CUDA". */
 #include "dmrCVTBackend.h"
+#include <stdexcept>
 
 namespace itk
 {
@@ -109,6 +110,20 @@ CVTSwapOptimizer::SetDeviceLoop(bool)
 void
 CVTSwapOptimizer::SetShortLabels(bool)
 {
+}
+
+void
+CVTSwapOptimizer::SetCellSlots(unsigned int)
+{
+}
+
+void
+CVTSwapOptimizer::SetPixelsPerProposalThread(unsigned int pixels)
+{
+  if (pixels > 2)
+  {
+    throw std::invalid_argument("CVTSwapOptimizer::SetPixelsPerProposalThread: 0 (automatic), 1 or 2");
+  }
 }
 
 double
