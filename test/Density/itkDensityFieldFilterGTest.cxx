@@ -17,6 +17,7 @@
  *=========================================================================*/
 #include "itkDensityFieldFilter.h"
 #include "dmrBackEndRounding.h"
+#include "dmrImageMetrics.h"
 #include "dmrGaussianShrink.h"
 #include "itkCastImageFilter.h"
 #include "itkDiscreteGaussianImageFilter.h"
@@ -99,6 +100,56 @@ ConstantField(const ImageType * like, const FieldType::PixelType & value)
   field->Allocate();
   field->FillBuffer(value);
   return field;
+}
+
+/** IntensityRange and FirstNonFinitePixel on the threader's work units give the serial scan's answers: on random
+ * images with a planted extreme or non-finite value at the start, in the middle of a chunk, at a chunk's edge and at
+ * the end, with several non-finite values (the first one counts) and with NaNs that the range passes over. */
+TEST(ImageMetrics, ThreadedRangeAndFirstNonFinitePixelEqualTheSerialScan)
+{
+  auto threader = itk::MultiThreaderBase::New();
+  threader->SetNumberOfWorkUnits(8);
+  using Image3 = itk::Image<float, 3>;
+  auto image = Image3::New();
+  image->SetRegions(Image3::SizeType{ { 97, 61, 23 } }); // 136 091 pixels: 33 chunks, the last one cut
+  image->Allocate();
+  const size_t                          n = image->GetBufferedRegion().GetNumberOfPixels();
+  float *                               buffer = image->GetBufferPointer();
+  std::mt19937                          random(7);
+  std::uniform_real_distribution<float> value(-1000.0f, 3000.0f);
+  for (const size_t at : { size_t{ 0 }, size_t{ 4123 }, size_t{ 4124 }, n / 3, n - 1 })
+  {
+    SCOPED_TRACE("planted at " + std::to_string(at));
+    for (size_t p = 0; p < n; ++p)
+    {
+      buffer[p] = value(random);
+    }
+    EXPECT_EQ(itk::dmr::FirstNonFinitePixel(image.GetPointer(), threader), -1);
+    buffer[at] = -5000.0f;
+    buffer[n - 1 - at] = 7000.0f;
+    const auto serial = itk::dmr::IntensityRange(image.GetPointer());
+    EXPECT_EQ(serial, std::make_pair(-5000.0, 7000.0));
+    EXPECT_EQ(itk::dmr::IntensityRange(image.GetPointer(), threader), serial);
+    // a NaN is passed over by both
+    buffer[(at + n / 5) % n] = std::numeric_limits<float>::quiet_NaN();
+    EXPECT_EQ(itk::dmr::IntensityRange(image.GetPointer(), threader), itk::dmr::IntensityRange(image.GetPointer()));
+    // non-finite values: the first one, wherever the chunks fall
+    buffer[n - 1] = std::numeric_limits<float>::infinity();
+    buffer[at] = -std::numeric_limits<float>::infinity();
+    const int64_t first = static_cast<int64_t>(std::min(at, (at + n / 5) % n));
+    EXPECT_EQ(itk::dmr::FirstNonFinitePixel(image.GetPointer()), first);
+    EXPECT_EQ(itk::dmr::FirstNonFinitePixel(image.GetPointer(), threader), first);
+  }
+  // a displacement field: a non-finite component of a vector pixel
+  auto field = FieldType::New();
+  field->SetRegions(FieldType::SizeType{ { 300, 200 } });
+  field->Allocate();
+  field->FillBuffer(FieldType::PixelType(1.5f));
+  EXPECT_EQ(itk::dmr::FirstNonFinitePixel(field.GetPointer(), threader), -1);
+  field->GetBufferPointer()[45678][1] = std::numeric_limits<float>::quiet_NaN();
+  field->GetBufferPointer()[59000][0] = std::numeric_limits<float>::infinity();
+  EXPECT_EQ(itk::dmr::FirstNonFinitePixel(field.GetPointer(), threader), 45678);
+  EXPECT_EQ(itk::dmr::FirstNonFinitePixel(field.GetPointer()), 45678);
 }
 
 TEST(BackEndRounding, RoundsToSinglePrecisionsSignificandInDoublesRange)

@@ -18,6 +18,7 @@
 #ifndef dmrImageMetrics_h
 #define dmrImageMetrics_h
 
+#include "dmrGrid.h" // ParallelForChunks, FirstIndexWhere
 #include "itkImage.h"
 #include "itkImageRegionConstIterator.h"
 #include "itkMacro.h"
@@ -26,27 +27,43 @@
 #include <cstdint>
 #include <type_traits>
 #include <utility>
+#include <vector>
 
 namespace itk
 {
 namespace dmr
 {
-/** Smallest and largest intensity of an image (whole buffer). */
+/** Smallest and largest intensity of an image (whole buffer); on the threader's work units when one is given (the
+ * same result: NaNs are passed over either way). */
 template <typename TImage>
 std::pair<double, double>
-IntensityRange(const TImage * image)
+IntensityRange(const TImage * image, MultiThreaderBase * threader = nullptr)
 {
   double lo = NumericTraits<double>::max(), hi = NumericTraits<double>::NonpositiveMin();
   if (image->GetBufferedRegion() == image->GetLargestPossibleRegion())
   {
-    // the whole buffer in memory order: the same values as the iterator's, without its per-pixel index bookkeeping
-    const auto * p = image->GetBufferPointer();
-    const auto * end = p + image->GetLargestPossibleRegion().GetNumberOfPixels();
-    for (; p != end; ++p)
+    // the whole buffer in memory order: the same values as the iterator's, without its per-pixel index bookkeeping;
+    // 64 chunks, each with its own range
+    const auto *                           buffer = image->GetBufferPointer();
+    const size_t                           n = image->GetLargestPossibleRegion().GetNumberOfPixels();
+    const size_t                           nChunks = std::max<size_t>(1, std::min<size_t>(64, n / 4096));
+    const size_t                           chunk = (n + nChunks - 1) / nChunks;
+    std::vector<std::pair<double, double>> ranges(nChunks, { lo, hi });
+    ParallelForChunkIds(threader, nChunks, [&](size_t c) {
+      double     l = ranges[c].first, h = ranges[c].second;
+      const auto end = buffer + std::min(n, (c + 1) * chunk);
+      for (auto p = buffer + std::min(n, c * chunk); p < end; ++p)
+      {
+        const double v = static_cast<double>(*p);
+        l = std::min(l, v);
+        h = std::max(h, v);
+      }
+      ranges[c] = { l, h };
+    });
+    for (const auto & r : ranges)
     {
-      const double v = static_cast<double>(*p);
-      lo = std::min(lo, v);
-      hi = std::max(hi, v);
+      lo = std::min(lo, r.first);
+      hi = std::max(hi, r.second);
     }
     return { lo, hi };
   }
@@ -61,36 +78,33 @@ IntensityRange(const TImage * image)
 }
 
 /** Buffer offset of the first pixel whose value (or, for a vector pixel such as a displacement, one of whose
- * components) is not a finite number (NaN or infinite), -1 when there is none. Integer images have none. */
+ * components) is not a finite number (NaN or infinite), -1 when there is none. Integer images have none. On the
+ * threader's work units when one is given (the same answer). */
 template <typename TImage>
 int64_t
-FirstNonFinitePixel(const TImage * image)
+FirstNonFinitePixel(const TImage * image, MultiThreaderBase * threader = nullptr)
 {
   using PixelType = typename TImage::PixelType;
   if constexpr (std::is_floating_point_v<typename NumericTraits<PixelType>::ValueType>)
   {
     const auto * buffer = image->GetBufferPointer();
-    const auto   n = static_cast<int64_t>(image->GetBufferedRegion().GetNumberOfPixels());
-    for (int64_t p = 0; p < n; ++p)
-    {
+    const size_t n = image->GetBufferedRegion().GetNumberOfPixels();
+    const size_t first = FirstIndexWhere(threader, n, [buffer](size_t p) {
       if constexpr (std::is_floating_point_v<PixelType>)
       {
-        if (!std::isfinite(buffer[p]))
-        {
-          return p;
-        }
+        return !std::isfinite(buffer[p]);
       }
       else
       {
+        bool bad = false;
         for (unsigned int k = 0; k < NumericTraits<PixelType>::GetLength(buffer[p]); ++k)
         {
-          if (!std::isfinite(buffer[p][k]))
-          {
-            return p;
-          }
+          bad |= !std::isfinite(buffer[p][k]);
         }
+        return bad;
       }
-    }
+    });
+    return first < n ? static_cast<int64_t>(first) : -1;
   }
   return -1;
 }

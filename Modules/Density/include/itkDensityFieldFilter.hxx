@@ -142,17 +142,21 @@ DensityFieldFilter<TF, TM, TD, TO>::GenerateOutputInformation()
 
 namespace dmr
 {
-/** Float copy of an image's buffer (whole image) into a flat array. */
+/** Float copy of an image's buffer (whole image) into a flat array (on the threader's work units when one is given
+ * and the image is buffered whole). */
 template <typename TImage>
 void
-CopyToFloat(const TImage * image, std::vector<float> & out)
+CopyToFloat(const TImage * image, std::vector<float> & out, MultiThreaderBase * threader = nullptr)
 {
   out.resize(image->GetLargestPossibleRegion().GetNumberOfPixels());
   if (image->GetBufferedRegion() == image->GetLargestPossibleRegion())
   {
     // scalar images: the buffer in index order, each value converted as the iterator's Get() would
     const auto * buffer = image->GetBufferPointer();
-    std::transform(buffer, buffer + out.size(), out.begin(), [](const auto & v) { return static_cast<float>(v); });
+    float *      to = out.data();
+    ParallelForChunks(threader, out.size(), [buffer, to](size_t b, size_t e) {
+      std::transform(buffer + b, buffer + e, to + b, [](const auto & v) { return static_cast<float>(v); });
+    });
     return;
   }
   ImageRegionConstIterator<TImage> it(image, image->GetLargestPossibleRegion());
@@ -323,8 +327,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
   // The intensity scale (class description): a power of two that brings the force scale 2 R^2 / h to about 1 when it
   // is outside [2^-40, 2^40], so that |f|^2 (up to ~1e4 force scales squared) and alpha (down to 1e-12 of it) stay
   // normal floats. Exact, so results do not change otherwise.
-  const auto   fixedRange = dmr::IntensityRange(fixed);
-  const auto   movingRange = dmr::IntensityRange(moving);
+  const auto   fixedRange = dmr::IntensityRange(fixed, this->GetMultiThreader());
+  const auto   movingRange = dmr::IntensityRange(moving, this->GetMultiThreader());
   const double range = std::max(fixedRange.second - fixedRange.first, movingRange.second - movingRange.first);
   double       minSpacing = fixed->GetSpacing()[0];
   for (unsigned int k = 1; k < ImageDimension; ++k)
@@ -406,8 +410,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
       {
         f = fixedFloat;
         m = movingFloat;
-        dmr::CopyToFloat(f.GetPointer(), L.fixed);
-        dmr::CopyToFloat(m.GetPointer(), L.moving);
+        dmr::CopyToFloat(f.GetPointer(), L.fixed, this->GetMultiThreader());
+        dmr::CopyToFloat(m.GetPointer(), L.moving, this->GetMultiThreader());
       }
       else
       {
@@ -417,8 +421,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
         f->SetRegions(fixed->GetLargestPossibleRegion());
         m->CopyInformation(moving);
         m->SetRegions(moving->GetLargestPossibleRegion());
-        dmr::CopyToFloat(fixed, L.fixed); // the cast's floats (static_cast), without the cast image
-        dmr::CopyToFloat(moving, L.moving);
+        dmr::CopyToFloat(fixed, L.fixed, this->GetMultiThreader()); // the cast's floats (static_cast), no cast image
+        dmr::CopyToFloat(moving, L.moving, this->GetMultiThreader());
         applyScale(L.fixed.data(), L.fixed.size());
         applyScale(L.moving.data(), L.moving.size());
       }
@@ -434,8 +438,8 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
           fixedFloat.GetPointer(), fixedVariance, 64, fixedFactors, this->GetMultiThreader());
         m = dmr::GaussianShrink<ImageDimension>(
           movingFloat.GetPointer(), movingVariance, 64, movingFactors, this->GetMultiThreader());
-        dmr::CopyToFloat(f.GetPointer(), L.fixed);
-        dmr::CopyToFloat(m.GetPointer(), L.moving);
+        dmr::CopyToFloat(f.GetPointer(), L.fixed, this->GetMultiThreader());
+        dmr::CopyToFloat(m.GetPointer(), L.moving, this->GetMultiThreader());
       }
       else
       {

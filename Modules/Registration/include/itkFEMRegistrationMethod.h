@@ -30,6 +30,7 @@
 #include "dmrFieldOps.h"
 #include "dmrRegistrationBackend.h"
 #include <chrono>
+#include <future>
 #include <string>
 
 namespace itk
@@ -424,9 +425,10 @@ private:
   /** Assembles the stiffness of a new mesh (timed as FEM solve, part of registration). */
   void
   SetSolverMesh(const SimplexMeshType & mesh);
-  /** The iteration loop with every per-pixel stage on the GPU (BackendUsed CUDA). */
+  /** The iteration loop with every per-pixel stage on the GPU (BackendUsed CUDA); deviceContext: the creation of the
+   * device's context, started by GenerateData. */
   void
-  GenerateDataCUDA(std::chrono::steady_clock::time_point tStart);
+  GenerateDataCUDA(std::chrono::steady_clock::time_point tStart, std::future<dmr::cuda::Status> & deviceContext);
   void
   UploadMesh(dmr::cuda::RegistrationContext & context, const SimplexMeshType & mesh);
 

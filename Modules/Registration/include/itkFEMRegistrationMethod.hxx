@@ -275,12 +275,19 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   using Clock = std::chrono::steady_clock;
   auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
   const auto tStart = Clock::now();
+  // the device's context (about 0.1 s) is created on a helper thread while the inputs are checked and prepared; a
+  // failure there (no device: the CPU path runs) shows again, with its message, at the context's Initialize
+  std::future<dmr::cuda::Status> deviceContext;
+  if (m_Backend != BackendEnum::CPU)
+  {
+    deviceContext = std::async(std::launch::async, [] { return dmr::cuda::CreateContext(); });
+  }
 
   const FixedImageType *  fixed = this->GetFixedImage();
   const MovingImageType * moving = this->GetMovingImage();
   // "the <name> has a non-finite <quantity> (<value>) at index <index>"
   auto requireFinite = [this](const char * name, const char * quantity, const auto * image) {
-    const auto p = image ? dmr::FirstNonFinitePixel(image) : -1;
+    const auto p = image ? dmr::FirstNonFinitePixel(image, this->GetMultiThreader()) : -1;
     if (p >= 0)
     {
       itkExceptionMacro("the " << name << " has a non-finite " << quantity << " (" << image->GetBufferPointer()[p]
@@ -294,7 +301,8 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   {
     requireFinite("initial inverse displacement field", "value", this->GetInitialInverseDisplacementField());
   }
-  for (const auto & range : { dmr::IntensityRange(fixed), dmr::IntensityRange(moving) })
+  for (const auto & range :
+       { dmr::IntensityRange(fixed, this->GetMultiThreader()), dmr::IntensityRange(moving, this->GetMultiThreader()) })
   {
     if (!(range.second > range.first))
     {
@@ -310,7 +318,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   {
     m_BackendUsed = BackendEnum::CUDA;
     dmr::cuda::ResetMemoryPeak();
-    this->GenerateDataCUDA(tStart);
+    this->GenerateDataCUDA(tStart, deviceContext);
     return;
   }
   m_BackendUsed = BackendEnum::CPU;
@@ -546,7 +554,14 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
   DisplacementFieldType * field = this->GetDisplacementField();
   field->SetBufferedRegion(field->GetLargestPossibleRegion());
   field->Allocate();
-  field->FillBuffer(typename DisplacementFieldType::PixelType(0.0));
+  {
+    // FillBuffer on the work units (a CT's field is hundreds of MB, first touched here)
+    auto *     buffer = field->GetBufferPointer();
+    const auto zero = typename DisplacementFieldType::PixelType(0.0);
+    dmr::ParallelForChunks(this->GetMultiThreader(),
+                           field->GetBufferedRegion().GetNumberOfPixels(),
+                           [buffer, &zero](size_t b, size_t e) { std::fill(buffer + b, buffer + e, zero); });
+  }
 
   m_DensityFilter->SetFixedImage(this->GetFixedImage());
   m_DensityFilter->SetMovingImage(this->GetMovingImage());
@@ -925,7 +940,8 @@ FEMRegistrationMethod<TF, TM, TD>::InitialGridField(const DisplacementFieldType 
 
 template <typename TF, typename TM, typename TD>
 void
-FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::time_point tStart)
+FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::time_point tStart,
+                                                    std::future<dmr::cuda::Status> &      deviceContext)
 {
   constexpr unsigned int D = ImageDimension;
   using Clock = std::chrono::steady_clock;
@@ -941,23 +957,26 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   this->ConfigureStages();
 
   // the pyramids: level 0's images converted to float on the CPU and uploaded, the coarser levels and the moving
-  // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids). The
-  // device's context is created meanwhile on a helper thread (each takes about 0.1 s on a CT); a failure there shows
-  // again, with its message, at the context's Initialize.
+  // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids), while
+  // the device's context is still being created (GenerateData)
   auto                 t0 = Clock::now();
-  auto                 deviceContext = std::async(std::launch::async, [] { return dmr::cuda::CreateContext(); });
   const auto           views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
   std::vector<uint8_t> mask;
   if (const auto * maskImage = this->GetFixedMask())
   {
     mask.resize(n); // on the fixed grid (VerifyInputInformation)
     const auto * m = maskImage->GetBufferPointer();
-    for (size_t p = 0; p < n; ++p)
-    {
-      mask[p] = m[p] != 0 ? 1 : 0;
-    }
+    dmr::ParallelForChunks(threader, n, [&](size_t b, size_t e) {
+      for (size_t p = b; p < e; ++p)
+      {
+        mask[p] = m[p] != 0 ? 1 : 0;
+      }
+    });
   }
-  deviceContext.wait();
+  if (deviceContext.valid())
+  {
+    deviceContext.wait();
+  }
   dmr::cuda::RegistrationContext context;
   dmr::ThrowOnError(
     context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
