@@ -157,7 +157,7 @@ check_run_outputs() {
   timing=$(sed -n 's/^ *"timing_s": *{\(.*\)} *,\{0,1\}$/\1/p' "$report")
   check "report: timing_s is an object" test -n "$timing"
   for key in total initial_tessellation tessellation_optimization mesh_construction barycentric registration \
-             fem_solve registration_force registration_gather registration_update; do
+             fem_solve registration_force registration_gather registration_update device_warm_up; do
     local v
     v=$(echo "$timing" | sed -n "s/.*\"$key\": *\([-0-9.eE+]*\).*/\1/p")
     if is_number "$v" && awk_true "$v >= 0"; then pass "report: timing_s.$key = $v"; else fail "report: timing_s.$key missing or negative ('$v')"; fi
