@@ -824,13 +824,26 @@ __device__ inline double
 BatchEnergyChange(const int32_t * count, const double * term, int32_t nCells)
 {
   double sum = 0.0;
-  // both loads unconditional (term is zeroed at allocation), so the loads of several cells are in flight at once
-#pragma unroll 4
-  for (int32_t c = threadIdx.x; c < nCells; c += blockDim.x)
+  // the thread's cells in groups of 16: all the group's loads are issued before its additions (term is zeroed at
+  // allocation, so an untouched cell's load is harmless), then added in cell order as one at a time would be
+  constexpr int32_t G = 16;
+  const int32_t     step = static_cast<int32_t>(blockDim.x);
+  for (int32_t first = threadIdx.x; first < nCells; first += G * step)
   {
-    const int32_t n = count[c];
-    const double  t = term[c];
-    sum += n > 0 ? t : 0.0;
+    int32_t n[G];
+    double  t[G];
+#pragma unroll
+    for (int32_t g = 0; g < G; ++g)
+    {
+      const int32_t c = first + g * step;
+      n[g] = c < nCells ? count[c] : 0;
+      t[g] = c < nCells ? term[c] : 0.0;
+    }
+#pragma unroll
+    for (int32_t g = 0; g < G; ++g)
+    {
+      sum += n[g] > 0 ? t[g] : 0.0;
+    }
   }
   using Reduce = cub::BlockReduce<double, Threads>;
   __shared__ typename Reduce::TempStorage storage;
