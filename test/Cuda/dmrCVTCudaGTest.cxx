@@ -248,8 +248,8 @@ ExpectGpuFollowsCpu(const itk::dmr::Grid<D> &  grid,
   slotOverflows += g.slotOverflows;
 }
 
-/** ExpectGpuFollowsCpu on every layout; the slots must overflow where there are two per cell (so that the scan
- * that collects the entries of a full cell is exercised) and never where there are none. */
+/** ExpectGpuFollowsCpu on every layout; the slots must overflow where there are two per cell (so that the overflow
+ * list, from which a full cell collects its other entries, is exercised) and never where there are none. */
 template <unsigned int D>
 void
 ExpectGpuFollowsCpuInEveryLayout(const itk::dmr::Grid<D> &  grid,
