@@ -711,9 +711,9 @@ Run(const Options & opt)
   using MaskType = typename MethodType::MaskImageType;
   using FieldType = typename MethodType::DisplacementFieldType;
 
-  // The device's context (about 0.1 s, more where CUDA loads every kernel at once, CUDA_MODULE_LOADING=EAGER) is
-  // created on its own thread while the inputs are read; the registration then finds it ready. Its time is reported
-  // apart (timing_s.device_warm_up); whatever of it the reading did not cover counts in the registration's total.
+  // The device's context (0.2-0.35 s on the H100 and H200 hosts, docs/benchmarks.md) is created on its own thread while
+  // the inputs are read; the registration then finds it ready. Its time is reported apart (timing_s.device_warm_up);
+  // whatever of it the reading did not cover counts in the registration's total.
   std::future<double> deviceWarmUp;
   if (opt.backend != "cpu")
   {

@@ -275,8 +275,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
   using Clock = std::chrono::steady_clock;
   auto seconds = [](Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
   const auto tStart = Clock::now();
-  // the device's context (about 0.1 s) is created on a helper thread while the inputs are checked and prepared; a
-  // failure there (no device: the CPU path runs) shows again, with its message, at the context's Initialize
+  // the device's context (0.2-0.35 s on the H100 and H200 hosts) is created on a helper thread while the inputs are
+  // checked and prepared; a failure there (no device: the CPU path runs) shows again, with its message, at the
+  // context's Initialize
   std::future<dmr::cuda::Status> deviceContext;
   if (m_Backend != BackendEnum::CPU)
   {
