@@ -759,8 +759,16 @@ public:
   void
   Reset()
   {
-    m_Vertices = m_SavedVertices;
-    m_Neighbours = m_SavedNeighbours;
+    ResetTo(m_SavedVertices, m_SavedNeighbours);
+  }
+
+  /** Back to the given tetrahedra and neighbours (those the repair started from, when they need not be saved: an
+   * adopted list), none dead or created. */
+  void
+  ResetTo(const std::vector<std::array<int32_t, 4>> & vertices, const std::vector<std::array<int32_t, 4>> & neighbours)
+  {
+    m_Vertices = vertices;
+    m_Neighbours = neighbours;
     m_Dead.assign(m_Vertices.size(), 0);
     m_Created.assign(m_Vertices.size(), 0);
     m_Free.clear();
@@ -1972,9 +1980,9 @@ Repair(const std::vector<double> &                 xyz,
     return false;
   }
   repair.SetBox(lo, hi);
-  if (fromEarlier)
+  if (fromEarlier && !adopted)
   {
-    repair.Save();
+    repair.Save(); // an adopted start is previous and *previousNeighbours: ResetTo restores it without a copy
   }
   const size_t          maximumJumps = std::max<size_t>(16, n / 32);
   const size_t          maximumFlips = 4 * nt + 1000;
@@ -2069,7 +2077,14 @@ Repair(const std::vector<double> &                 xyz,
     {
       return false;
     }
-    repair.Reset();
+    if (adopted)
+    {
+      repair.ResetTo(previous, *previousNeighbours);
+    }
+    else
+    {
+      repair.Reset();
+    }
   }
   if (!repair.Flip(std::move(queue), maximumFlips, stats))
   {
@@ -2121,52 +2136,94 @@ Repair(const std::vector<double> &                 xyz,
     return false;
   }
   // canonical and sorted: the old tetrahedra keep their order (previous is usually Delaunay3D's sorted list), the
-  // new ones are sorted and merged in; each with its slot, for the neighbours
-  using Entry = std::pair<std::array<int32_t, 4>, int32_t>;
-  std::vector<Entry> entries, created;
-  entries.reserve(v.size());
+  // new ones are sorted and merged in; slot[k]: the repair's slot of tetrahedron k, for the neighbours
+  using Tetrahedron = std::array<int32_t, 4>;
+  using Entry = std::pair<Tetrahedron, int32_t>;
+  std::vector<int32_t> oldSlots;
+  std::vector<Entry>   created;
+  oldSlots.reserve(v.size());
+  bool oldInOrder = true; // every old tetrahedron canonical as it is, in ascending order: merged without copies
   for (size_t t = 0; t < v.size(); ++t)
   {
-    if (!repair.Dead(t))
+    if (repair.Dead(t))
     {
-      (repair.Created(t) ? created : entries).emplace_back(CanonicalTetrahedron(v[t]), static_cast<int32_t>(t));
+      continue;
+    }
+    if (repair.Created(t))
+    {
+      created.emplace_back(CanonicalTetrahedron(v[t]), static_cast<int32_t>(t));
+    }
+    else
+    {
+      oldInOrder = oldInOrder && CanonicalTetrahedron(v[t]) == v[t] && (oldSlots.empty() || v[oldSlots.back()] < v[t]);
+      oldSlots.push_back(static_cast<int32_t>(t));
     }
   }
   const auto byTetrahedron = [](const Entry & a, const Entry & b) { return a.first < b.first; };
-  if (!std::is_sorted(entries.begin(), entries.end(), byTetrahedron))
-  {
-    std::sort(entries.begin(), entries.end(), byTetrahedron);
-  }
   std::sort(created.begin(), created.end(), byTetrahedron);
-  const auto middle = static_cast<std::ptrdiff_t>(entries.size());
-  entries.insert(entries.end(), created.begin(), created.end());
-  std::inplace_merge(entries.begin(), entries.begin() + middle, entries.end(), byTetrahedron);
-  tetrahedra.resize(entries.size());
-  for (size_t k = 0; k < entries.size(); ++k)
+  const size_t         total = oldSlots.size() + created.size();
+  std::vector<int32_t> slot(total);
+  tetrahedra.resize(total);
+  if (oldInOrder)
   {
-    tetrahedra[k] = entries[k].first;
+    // the two sorted lists merged straight into the output
+    size_t i = 0, j = 0;
+    for (size_t k = 0; k < total; ++k)
+    {
+      if (j == created.size() || (i < oldSlots.size() && v[oldSlots[i]] < created[j].first))
+      {
+        slot[k] = oldSlots[i];
+        tetrahedra[k] = v[oldSlots[i++]];
+      }
+      else
+      {
+        slot[k] = created[j].second;
+        tetrahedra[k] = created[j++].first;
+      }
+    }
+  }
+  else
+  {
+    std::vector<Entry> entries;
+    entries.reserve(total);
+    for (const int32_t t : oldSlots)
+    {
+      entries.emplace_back(CanonicalTetrahedron(v[t]), t);
+    }
+    if (!std::is_sorted(entries.begin(), entries.end(), byTetrahedron))
+    {
+      std::sort(entries.begin(), entries.end(), byTetrahedron);
+    }
+    const auto middle = static_cast<std::ptrdiff_t>(entries.size());
+    entries.insert(entries.end(), created.begin(), created.end());
+    std::inplace_merge(entries.begin(), entries.begin() + middle, entries.end(), byTetrahedron);
+    for (size_t k = 0; k < total; ++k)
+    {
+      tetrahedra[k] = entries[k].first;
+      slot[k] = entries[k].second;
+    }
   }
   if (neighbours)
   {
     // the neighbour opposite each node of the canonical tetrahedron, as positions in the list
     std::vector<int32_t> position(v.size(), -1);
-    for (size_t k = 0; k < entries.size(); ++k)
+    for (size_t k = 0; k < total; ++k)
     {
-      position[entries[k].second] = static_cast<int32_t>(k);
+      position[slot[k]] = static_cast<int32_t>(k);
     }
     const auto & nb = repair.Neighbours();
-    neighbours->resize(entries.size());
-    for (size_t k = 0; k < entries.size(); ++k)
+    neighbours->resize(total);
+    for (size_t k = 0; k < total; ++k)
     {
-      const int32_t slot = entries[k].second;
+      const int32_t s = slot[k];
       for (int m = 0; m < 4; ++m)
       {
-        int i = 0;
-        while (v[slot][i] != entries[k].first[m])
+        int i = m; // the node's place in the repair's order (the same unless the tetrahedron was reordered)
+        while (v[s][i] != tetrahedra[k][m])
         {
-          ++i;
+          i = (i + 1) % 4;
         }
-        const int32_t u = nb[slot][i];
+        const int32_t u = nb[s][i];
         (*neighbours)[k][m] = u < 0 ? -1 : position[u];
       }
     }
