@@ -2166,11 +2166,11 @@ Repair(const std::vector<double> &                 xyz,
   tetrahedra.resize(total);
   if (oldInOrder)
   {
-    // the two sorted lists merged straight into the output
+    // the two sorted lists merged straight into the output (an old one first on a tie, as std::inplace_merge)
     size_t i = 0, j = 0;
     for (size_t k = 0; k < total; ++k)
     {
-      if (j == created.size() || (i < oldSlots.size() && v[oldSlots[i]] < created[j].first))
+      if (j == created.size() || (i < oldSlots.size() && !(created[j].first < v[oldSlots[i]])))
       {
         slot[k] = oldSlots[i];
         tetrahedra[k] = v[oldSlots[i++]];
