@@ -889,6 +889,48 @@ TEST(Delaunay3D, RepairCarriesTheNeighboursToTheNextOne)
   EXPECT_GE(withNeighbours, 6u);
 }
 
+/** The earlier tetrahedra need not be Delaunay3D's canonical sorted list: the same tiling in another order, each
+ * tetrahedron's nodes rotated evenly (the orientation kept), gives the same result and neighbours. */
+TEST(Delaunay3D, RepairTakesTheEarlierTetrahedraInAnyOrder)
+{
+  const double side[3] = { 300.0, 260.0, 180.0 };
+  const double h = 16.0;
+  auto         xyz = DualMeshLikeNodes(side[0], side[1], side[2], h, false, false, 21u);
+  Tetrahedra   previous;
+  itk::dmr::Delaunay3D(xyz, previous, Threader(2));
+  size_t repaired = 0;
+  for (uint32_t move = 0; move < 6; ++move)
+  {
+    // (a, b, c, d) -> (b, c, a, d): an even permutation; the list reversed
+    Tetrahedra shuffled(previous.rbegin(), previous.rend());
+    for (auto & t : shuffled)
+    {
+      t = { t[1], t[2], t[0], t[3] };
+    }
+    xyz = MoveNodes(xyz, side, h * 0.005, 300 + move);
+    Tetrahedra reference;
+    itk::dmr::Delaunay3D(xyz, reference, Threader(2));
+    Tetrahedra                          fromSorted, fromShuffled;
+    std::vector<std::array<int32_t, 4>> sortedNeighbours, shuffledNeighbours;
+    itk::dmr::DelaunayWarmStart         sorted, other;
+    sorted.tetrahedra = previous;
+    other.tetrahedra = shuffled;
+    const bool a = itk::dmr::RepairDelaunay3D(xyz, sorted, fromSorted, Threader(2), nullptr, &sortedNeighbours);
+    const bool b = itk::dmr::RepairDelaunay3D(xyz, other, fromShuffled, Threader(2), nullptr, &shuffledNeighbours);
+    EXPECT_EQ(a, b) << "move " << move;
+    if (a && b)
+    {
+      ++repaired;
+      ASSERT_EQ(fromShuffled, reference) << "move " << move;
+      EXPECT_EQ(fromShuffled, fromSorted) << "move " << move;
+      EXPECT_EQ(shuffledNeighbours, sortedNeighbours) << "move " << move;
+      ExpectNeighboursOf(fromShuffled, shuffledNeighbours);
+    }
+    previous = reference;
+  }
+  EXPECT_GE(repaired, 3u);
+}
+
 /** What RepairDelaunay3D refuses (false, no tetrahedra): lists that do not tile the box with the nodes as they are (or
  * are not consistently oriented), and cospherical nodes, whose Delaunay tetrahedralization is not unique (Delaunay3D's
  * CGAL run decides there). */

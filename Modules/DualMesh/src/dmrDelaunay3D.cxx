@@ -2142,7 +2142,7 @@ Repair(const std::vector<double> &                 xyz,
   std::vector<int32_t> oldSlots;
   std::vector<Entry>   created;
   oldSlots.reserve(v.size());
-  bool oldInOrder = true; // every old tetrahedron canonical as it is, in ascending order: merged without copies
+  bool oldInOrder = true; // every old tetrahedron canonical as it is, in ascending order: merged without a copy
   for (size_t t = 0; t < v.size(); ++t)
   {
     if (repair.Dead(t))
@@ -2161,46 +2161,38 @@ Repair(const std::vector<double> &                 xyz,
   }
   const auto byTetrahedron = [](const Entry & a, const Entry & b) { return a.first < b.first; };
   std::sort(created.begin(), created.end(), byTetrahedron);
+  // the old tetrahedra in canonical form and order, copied only where they are not so already
+  std::vector<Entry> reordered;
+  if (!oldInOrder)
+  {
+    reordered.reserve(oldSlots.size());
+    for (const int32_t t : oldSlots)
+    {
+      reordered.emplace_back(CanonicalTetrahedron(v[t]), t);
+    }
+    if (!std::is_sorted(reordered.begin(), reordered.end(), byTetrahedron))
+    {
+      std::sort(reordered.begin(), reordered.end(), byTetrahedron);
+    }
+  }
+  const auto oldTetrahedron = [&](size_t i) -> const Tetrahedron & {
+    return oldInOrder ? v[oldSlots[i]] : reordered[i].first;
+  };
+  // the two sorted lists merged into the output, an old tetrahedron first on a tie (as a stable merge)
   const size_t         total = oldSlots.size() + created.size();
   std::vector<int32_t> slot(total);
   tetrahedra.resize(total);
-  if (oldInOrder)
+  for (size_t k = 0, i = 0, j = 0; k < total; ++k)
   {
-    // the two sorted lists merged straight into the output (an old one first on a tie, as std::inplace_merge)
-    size_t i = 0, j = 0;
-    for (size_t k = 0; k < total; ++k)
+    if (j == created.size() || (i < oldSlots.size() && !(created[j].first < oldTetrahedron(i))))
     {
-      if (j == created.size() || (i < oldSlots.size() && !(created[j].first < v[oldSlots[i]])))
-      {
-        slot[k] = oldSlots[i];
-        tetrahedra[k] = v[oldSlots[i++]];
-      }
-      else
-      {
-        slot[k] = created[j].second;
-        tetrahedra[k] = created[j++].first;
-      }
+      slot[k] = oldInOrder ? oldSlots[i] : reordered[i].second;
+      tetrahedra[k] = oldTetrahedron(i++);
     }
-  }
-  else
-  {
-    std::vector<Entry> entries;
-    entries.reserve(total);
-    for (const int32_t t : oldSlots)
+    else
     {
-      entries.emplace_back(CanonicalTetrahedron(v[t]), t);
-    }
-    if (!std::is_sorted(entries.begin(), entries.end(), byTetrahedron))
-    {
-      std::sort(entries.begin(), entries.end(), byTetrahedron);
-    }
-    const auto middle = static_cast<std::ptrdiff_t>(entries.size());
-    entries.insert(entries.end(), created.begin(), created.end());
-    std::inplace_merge(entries.begin(), entries.begin() + middle, entries.end(), byTetrahedron);
-    for (size_t k = 0; k < total; ++k)
-    {
-      tetrahedra[k] = entries[k].first;
-      slot[k] = entries[k].second;
+      slot[k] = created[j].second;
+      tetrahedra[k] = created[j++].first;
     }
   }
   if (neighbours)
