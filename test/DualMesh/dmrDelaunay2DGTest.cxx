@@ -18,7 +18,9 @@
 #include "dmrDelaunay2D.h"
 #include "gtest/gtest.h"
 
+#include <algorithm>
 #include <cmath>
+#include <iostream>
 #include <random>
 #include <set>
 
@@ -137,5 +139,149 @@ TEST(ConstrainedDelaunay2D, RandomPointsGiveAnEmptyCircumcircleTriangulationOfTh
     }
   }
   EXPECT_NEAR(area, 1500.0, 1e-9);
+}
+
+/** Whether the closed segments (a, b) and (c, d) of integer points meet as ConstrainedDelaunay2D refuses: segments
+ * that share an endpoint only where they overlap along a line, others wherever they meet. */
+bool
+MeetsAsRefused(const std::array<int64_t, 2> & a,
+               const std::array<int64_t, 2> & b,
+               const std::array<int64_t, 2> & c,
+               const std::array<int64_t, 2> & d)
+{
+  auto orient =
+    [](const std::array<int64_t, 2> & p, const std::array<int64_t, 2> & q, const std::array<int64_t, 2> & r) {
+      const int64_t v = (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]);
+      return (v > 0) - (v < 0);
+    };
+  auto within =
+    [](const std::array<int64_t, 2> & p, const std::array<int64_t, 2> & q, const std::array<int64_t, 2> & r) {
+      return std::min(p[0], q[0]) <= r[0] && r[0] <= std::max(p[0], q[0]) && std::min(p[1], q[1]) <= r[1] &&
+             r[1] <= std::max(p[1], q[1]);
+    };
+  if (a == c || a == d || b == c || b == d)
+  {
+    if (orient(c, d, a) != 0 || orient(c, d, b) != 0)
+    {
+      return false;
+    }
+    const auto & common = (a == c || a == d) ? a : b;
+    const auto & mine = common == a ? b : a;
+    const auto & other = common == c ? d : c;
+    return (mine[0] - common[0]) * (other[0] - common[0]) + (mine[1] - common[1]) * (other[1] - common[1]) > 0;
+  }
+  const int o1 = orient(a, b, c), o2 = orient(a, b, d), o3 = orient(c, d, a), o4 = orient(c, d, b);
+  if (o1 != o2 && o3 != o4)
+  {
+    return true;
+  }
+  return (o1 == 0 && within(a, b, c)) || (o2 == 0 && within(a, b, d)) || (o3 == 0 && within(c, d, a)) ||
+         (o4 == 0 && within(c, d, b));
+}
+
+TEST(ConstrainedDelaunay2D, SkipsExactlyTheConstraintsThatMeetAnAcceptedOne)
+{
+  // Integer nodes (exact arithmetic for the reference), many of them on common lines; constraints short and long
+  // (some across the whole box), repeated, reversed, with shared endpoints and overlaps along lines.
+  size_t skippedInAll = 0, acceptedInAll = 0;
+  for (uint32_t seed = 1; seed <= 12; ++seed)
+  {
+    std::mt19937                           engine(seed);
+    const int64_t                          width = 60 + 20 * (seed % 3), height = 40 + 30 * (seed % 2);
+    std::uniform_int_distribution<int64_t> ux(0, width), uy(0, height);
+    std::set<std::array<int64_t, 2>>       taken{ { 0, 0 }, { width, 0 }, { width, height }, { 0, height } };
+    std::vector<std::array<int64_t, 2>>    p(taken.begin(), taken.end());
+    while (p.size() < 300)
+    {
+      const std::array<int64_t, 2> q{ ux(engine), uy(engine) };
+      if (taken.insert(q).second)
+      {
+        p.push_back(q);
+      }
+    }
+    std::vector<double> xy;
+    for (const auto & q : p)
+    {
+      xy.push_back(static_cast<double>(q[0]));
+      xy.push_back(static_cast<double>(q[1]));
+    }
+    std::uniform_int_distribution<int32_t> node(0, static_cast<int32_t>(p.size()) - 1);
+    std::vector<std::array<int32_t, 2>>    constraints;
+    while (constraints.size() < 900)
+    {
+      const int32_t a = node(engine);
+      const int     kind = static_cast<int>(engine() % 20);
+      int32_t       b = node(engine);
+      if (kind < 16) // short: to the nearest of a few random nodes
+      {
+        for (int t = 0; t < 12; ++t)
+        {
+          const int32_t c = node(engine);
+          auto          d2 = [&](int32_t i) {
+            return (p[i][0] - p[a][0]) * (p[i][0] - p[a][0]) + (p[i][1] - p[a][1]) * (p[i][1] - p[a][1]);
+          };
+          b = (b == a || (c != a && d2(c) < d2(b))) ? c : b;
+        }
+      }
+      else if (kind == 16 && !constraints.empty()) // repeated or reversed
+      {
+        const auto & e = constraints[engine() % constraints.size()];
+        constraints.push_back(engine() % 2 ? e : std::array<int32_t, 2>{ e[1], e[0] });
+        continue;
+      }
+      else if (kind == 17)
+      {
+        b = a; // a single node: skipped
+      }
+      constraints.push_back({ a, b });
+    }
+    // the reference: each constraint against every accepted one before it
+    std::vector<std::array<int32_t, 2>> accepted;
+    size_t                              skipped = 0;
+    for (const auto & c : constraints)
+    {
+      bool meets = c[0] == c[1];
+      for (size_t k = 0; k < accepted.size() && !meets; ++k)
+      {
+        meets = MeetsAsRefused(p[c[0]], p[c[1]], p[accepted[k][0]], p[accepted[k][1]]);
+      }
+      if (meets)
+      {
+        ++skipped;
+      }
+      else
+      {
+        accepted.push_back(c);
+      }
+    }
+    TriangleList triangles;
+    ASSERT_EQ(itk::dmr::ConstrainedDelaunay2D(xy, constraints, triangles), skipped) << "seed " << seed;
+    // an accepted constraint with no node inside is an edge of the triangulation
+    for (const auto & c : accepted)
+    {
+      bool nodeInside = false;
+      for (size_t i = 0; i < p.size() && !nodeInside; ++i)
+      {
+        nodeInside = static_cast<int32_t>(i) != c[0] && static_cast<int32_t>(i) != c[1] &&
+                     MeetsAsRefused(p[c[0]], p[c[1]], p[i], p[i]);
+      }
+      if (!nodeInside)
+      {
+        EXPECT_TRUE(HasEdge(triangles, c[0], c[1])) << "seed " << seed << ": " << c[0] << "-" << c[1];
+      }
+    }
+    double area = 0.0;
+    for (const auto & t : triangles)
+    {
+      EXPECT_GT(SignedArea(xy, t), 0.0);
+      area += SignedArea(xy, t);
+    }
+    EXPECT_EQ(area, static_cast<double>(width * height)) << "seed " << seed;
+    skippedInAll += skipped;
+    acceptedInAll += accepted.size();
+  }
+  std::cout << "accepted " << acceptedInAll << ", skipped " << skippedInAll << " of 12 x 900 constraints" << std::endl;
+  EXPECT_GT(skippedInAll, 1000u);
+  EXPECT_GT(acceptedInAll, 1000u);
 }
 } // namespace

@@ -23,6 +23,9 @@
 #include <CGAL/Constrained_triangulation_face_base_2.h>
 #include <CGAL/intersections.h>
 
+#include <algorithm>
+#include <cmath>
+
 namespace itk
 {
 namespace dmr
@@ -59,11 +62,46 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
     }
     merged[i] = handle[i]->info();
   }
+  // The accepted constraints, and a uniform grid of buckets over the nodes' bounding box (about one bucket per
+  // constraint) that lists, for each bucket, the accepted constraints whose box meets it: a new constraint is tested
+  // against those of the buckets its box meets instead of against all accepted ones (which took time quadratic in the
+  // number of constraints: 0.7 s per mesh at 16 000 nodes). Boxes that meet share a bucket, as the bucket of a
+  // coordinate never decreases with it, and the box test still decides, so the constraints skipped are the same. A
+  // constraint whose box meets more than 64 buckets goes on a list that every test reads instead.
   std::vector<Segment>               accepted;
   std::vector<std::array<double, 4>> boxes;
-  size_t                             skipped = 0;
-  for (const auto & c : constraints)
+  accepted.reserve(constraints.size());
+  boxes.reserve(constraints.size());
+  double lo[2] = { 0.0, 0.0 }, hi[2] = { 0.0, 0.0 };
+  for (size_t i = 0; i < n; ++i)
   {
+    for (unsigned int k = 0; k < 2; ++k)
+    {
+      lo[k] = i == 0 ? xy[2 * i + k] : std::min(lo[k], xy[2 * i + k]);
+      hi[k] = i == 0 ? xy[2 * i + k] : std::max(hi[k], xy[2 * i + k]);
+    }
+  }
+  const double extent = std::max(hi[0] - lo[0], hi[1] - lo[1]);
+  const double side = extent > 0.0 ? extent / std::ceil(std::sqrt(static_cast<double>(constraints.size()) + 1.0)) : 1.0;
+  size_t       buckets[2];
+  double       scale[2];
+  for (unsigned int k = 0; k < 2; ++k)
+  {
+    buckets[k] = std::max<size_t>(1, std::min<size_t>(4096, static_cast<size_t>(std::ceil((hi[k] - lo[k]) / side))));
+    scale[k] = hi[k] > lo[k] ? static_cast<double>(buckets[k]) / (hi[k] - lo[k]) : 0.0;
+  }
+  auto bucketOf = [&](double x, unsigned int k) {
+    const double b = (x - lo[k]) * scale[k];
+    return b > 0.0 ? std::min(buckets[k] - 1, static_cast<size_t>(b)) : size_t{ 0 };
+  };
+  std::vector<int32_t>                head(buckets[0] * buckets[1], -1);
+  std::vector<std::array<int32_t, 2>> entry; // (accepted constraint, next entry of the same bucket)
+  std::vector<int32_t>                large; // accepted constraints whose box meets more than 64 buckets
+  std::vector<size_t>                 seen;  // the last constraint whose test read each accepted one
+  size_t                              skipped = 0;
+  for (size_t ci = 0; ci < constraints.size(); ++ci)
+  {
+    const auto &  c = constraints[ci];
     const int32_t a = merged[c[0]], b = merged[c[1]];
     if (a == b)
     {
@@ -75,32 +113,51 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
     const std::array<double, 4> box{
       std::min(pa.x(), pb.x()), std::max(pa.x(), pb.x()), std::min(pa.y(), pb.y()), std::max(pa.y(), pb.y())
     };
-    bool crosses = false;
-    for (size_t k = 0; k < accepted.size() && !crosses; ++k)
-    {
+    // whether s crosses or overlaps the accepted constraint k
+    auto crossesAccepted = [&](size_t k) {
+      if (seen[k] == ci)
+      {
+        return false;
+      }
+      seen[k] = ci;
       const auto & o = boxes[k];
       if (o[1] < box[0] || o[0] > box[1] || o[3] < box[2] || o[2] > box[3])
       {
-        continue;
+        return false;
       }
       const Segment & t = accepted[k];
       const bool      shared = t.source() == pa || t.source() == pb || t.target() == pa || t.target() == pb;
-      if (shared)
+      if (!shared)
       {
-        // sharing an endpoint is fine unless the segments overlap along a line
-        if (CGAL::collinear(t.source(), t.target(), pa) && CGAL::collinear(t.source(), t.target(), pb))
-        {
-          const Point & other = (t.source() == pa || t.source() == pb) ? t.target() : t.source();
-          const Point & mine = (pa == t.source() || pa == t.target()) ? pb : pa;
-          const Point & common = (pa == t.source() || pa == t.target()) ? pa : pb;
-          // overlap when both free ends lie on the same side of the common point
-          crosses = (CGAL::collinear_are_ordered_along_line(common, other, mine) ||
-                     CGAL::collinear_are_ordered_along_line(common, mine, other));
-        }
+        return CGAL::do_intersect(s, t);
       }
-      else
+      // sharing an endpoint is fine unless the segments overlap along a line
+      if (CGAL::collinear(t.source(), t.target(), pa) && CGAL::collinear(t.source(), t.target(), pb))
       {
-        crosses = CGAL::do_intersect(s, t);
+        const Point & other = (t.source() == pa || t.source() == pb) ? t.target() : t.source();
+        const Point & mine = (pa == t.source() || pa == t.target()) ? pb : pa;
+        const Point & common = (pa == t.source() || pa == t.target()) ? pa : pb;
+        // overlap when both free ends lie on the same side of the common point
+        return CGAL::collinear_are_ordered_along_line(common, other, mine) ||
+               CGAL::collinear_are_ordered_along_line(common, mine, other);
+      }
+      return false;
+    };
+    const size_t bx0 = bucketOf(box[0], 0), bx1 = bucketOf(box[1], 0);
+    const size_t by0 = bucketOf(box[2], 1), by1 = bucketOf(box[3], 1);
+    bool         crosses = false;
+    for (size_t i = 0; i < large.size() && !crosses; ++i)
+    {
+      crosses = crossesAccepted(static_cast<size_t>(large[i]));
+    }
+    for (size_t by = by0; by <= by1 && !crosses; ++by)
+    {
+      for (size_t bx = bx0; bx <= bx1 && !crosses; ++bx)
+      {
+        for (int32_t e = head[by * buckets[0] + bx]; e >= 0 && !crosses; e = entry[e][1])
+        {
+          crosses = crossesAccepted(static_cast<size_t>(entry[e][0]));
+        }
       }
     }
     if (crosses)
@@ -108,8 +165,26 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
       ++skipped;
       continue;
     }
+    const auto k = static_cast<int32_t>(accepted.size());
     accepted.push_back(s);
     boxes.push_back(box);
+    seen.push_back(ci);
+    if ((bx1 - bx0 + 1) * (by1 - by0 + 1) > 64)
+    {
+      large.push_back(k);
+    }
+    else
+    {
+      for (size_t by = by0; by <= by1; ++by)
+      {
+        for (size_t bx = bx0; bx <= bx1; ++bx)
+        {
+          int32_t & h = head[by * buckets[0] + bx];
+          entry.push_back({ k, h });
+          h = static_cast<int32_t>(entry.size() - 1);
+        }
+      }
+    }
     cdt.insert_constraint(handle[a], handle[b]);
   }
   triangles.clear();
