@@ -277,6 +277,25 @@ TEST(ConstrainedDelaunay2D, SkipsExactlyTheConstraintsThatMeetAnAcceptedOne)
       area += SignedArea(xy, t);
     }
     EXPECT_EQ(area, static_cast<double>(width * height)) << "seed " << seed;
+    if (seed % 4 == 0)
+    {
+      // the same nodes moved and scaled exactly (by powers of two) so far apart that the spans of their
+      // coordinates overflow: the same constraints skipped
+      std::vector<double> far(xy.size());
+      double              lowest = 0.0, highest = 0.0;
+      for (size_t i = 0; i < xy.size(); ++i)
+      {
+        // x - width / 2 in [-width / 2, width / 2], whose ends become at least 2^1023 (the spans at least 2^1024)
+        const double half = i % 2 == 0 ? 0.5 * static_cast<double>(width) : 0.5 * static_cast<double>(height);
+        far[i] = std::ldexp(xy[i] - half, 1023 - std::ilogb(half));
+        lowest = i % 2 == 0 ? std::min(lowest, far[i]) : lowest;
+        highest = i % 2 == 0 ? std::max(highest, far[i]) : highest;
+      }
+      ASSERT_TRUE(std::isinf(highest - lowest));
+      TriangleList farTriangles;
+      EXPECT_EQ(itk::dmr::ConstrainedDelaunay2D(far, constraints, farTriangles), skipped) << "seed " << seed;
+      EXPECT_EQ(farTriangles.size(), triangles.size()) << "seed " << seed;
+    }
     skippedInAll += skipped;
     acceptedInAll += accepted.size();
   }

@@ -87,12 +87,18 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
   double       scale[2];
   for (unsigned int k = 0; k < 2; ++k)
   {
-    buckets[k] = std::max<size_t>(1, std::min<size_t>(4096, static_cast<size_t>(std::ceil((hi[k] - lo[k]) / side))));
+    // (compared in double before any conversion, so that huge or non-finite spans give 4096 or 1 buckets)
+    const double wanted = std::ceil((hi[k] - lo[k]) / side);
+    buckets[k] = wanted > 1.0 ? (wanted < 4096.0 ? static_cast<size_t>(wanted) : 4096) : 1;
     scale[k] = hi[k] > lo[k] ? static_cast<double>(buckets[k]) / (hi[k] - lo[k]) : 0.0;
   }
   auto bucketOf = [&](double x, unsigned int k) {
     const double b = (x - lo[k]) * scale[k];
-    return b > 0.0 ? std::min(buckets[k] - 1, static_cast<size_t>(b)) : size_t{ 0 };
+    if (!(b > 0.0))
+    {
+      return size_t{ 0 };
+    }
+    return b < static_cast<double>(buckets[k] - 1) ? static_cast<size_t>(b) : buckets[k] - 1;
   };
   std::vector<int32_t>                head(buckets[0] * buckets[1], -1);
   std::vector<std::array<int32_t, 2>> entry; // (accepted constraint, next entry of the same bucket)
