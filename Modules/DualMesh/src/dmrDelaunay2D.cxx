@@ -139,7 +139,7 @@ ConstrainedDelaunay2D(const std::vector<double> &                 xy,
       }
       // sharing an endpoint is fine unless the segments overlap along a line. Only s's other end is tested for
       // lying on t's line: the shared end lies on it, a degenerate case that the filtered predicate would settle by
-      // exact arithmetic every time (this was a third of the function's time)
+      // exact arithmetic every time (the 2D mesh stage at 1500 nodes took 0.36 s instead of 0.26 s per 100 iterations)
       const Point & mine = (pa == t.source() || pa == t.target()) ? pb : pa;
       if (CGAL::collinear(t.source(), t.target(), mine))
       {
