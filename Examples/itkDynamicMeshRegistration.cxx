@@ -1141,7 +1141,10 @@ Run(const Options & opt)
   // The mesh files are written on a helper thread, one at a time and in iteration order, so that the registration does
   // not wait for them (a 3D mesh of 3000 nodes took 25-30 ms per file: its itk::Mesh, then VTK's XML writer). The
   // observer copies the iteration's mesh; the next write, or the end of the run, waits for the last one and rethrows
-  // its error. On an error elsewhere the future's destructor waits for the write before the staging is cleaned up.
+  // its error. On an error elsewhere the future's destructor waits for the write before the staging is cleaned up. The
+  // helper reads a geometry-only copy of the fixed image (the pipeline may touch the image itself meanwhile).
+  typename ImageType::Pointer meshGeometry = ImageType::New();
+  meshGeometry->CopyInformation(method->GetFixedImage());
   std::future<void> meshWrite;
   auto              finishMeshWrite = [&] {
     if (meshWrite.valid())
@@ -1155,10 +1158,11 @@ Run(const Options & opt)
     finishMeshWrite();
     auto mesh = std::make_shared<const typename MethodType::SimplexMeshType>(method->GetCurrentSimplexMesh());
     meshWrite =
-      std::async(std::launch::async, [mesh, image = method->GetFixedImage(), path = staging.Path(name.str())] {
-        const auto itkMesh = itk::dmr::ToItkMesh<D, MeshType>(*mesh, image);
-        WriteMeshVTU<D>(itkMesh.GetPointer(), path);
-      });
+      std::async(std::launch::async,
+                 [mesh, image = typename ImageType::ConstPointer(meshGeometry), path = staging.Path(name.str())] {
+                   const auto itkMesh = itk::dmr::ToItkMesh<D, MeshType>(*mesh, image.GetPointer());
+                   WriteMeshVTU<D>(itkMesh.GetPointer(), path);
+                 });
     meshFiles.emplace_back(iteration, name.str());
   };
   auto observer = itk::CStyleCommand::New();
