@@ -1404,6 +1404,7 @@ Run(const Options & opt)
        << "  \"fem_tolerance\": " << opt.femTolerance << ",\n"
        << "  \"direct_solve_max_dofs\": " << opt.directSolveMaxDofs << ",\n"
        << "  \"gpu_order_solve\": " << (opt.gpuOrderSolve ? "true" : "false") << ",\n"
+       << "  \"contraction_on_host\": " << (method->GetContractedOnHost() ? "true" : "false") << ",\n"
        << "  \"device_solves\": " << deviceSolves << ",\n"
        << "  \"direct_solves\": " << directSolves << ",\n"
        << "  \"cg_products\": " << cgProducts << ",\n"

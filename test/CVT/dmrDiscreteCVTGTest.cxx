@@ -418,6 +418,74 @@ TEST(DiscreteCVT, ContractionMergesTheLeastPairOfAllFirst)
   }
 }
 
+// The contraction's block sums (ContractionInitialize contracts them; the CUDA back-end compares its own with them bit
+// for bit before it takes the host's merges of iteration 1): every block's mass and centroid, the last blocks of an
+// axis cut at the grid's end, the same whatever the threads
+template <unsigned int D>
+void
+ExpectBlockSumsOfEveryBlock(const itk::dmr::Grid<D> & grid, const std::vector<float> & density, unsigned int block)
+{
+  SCOPED_TRACE(std::to_string(D) + "D, blocks of " + std::to_string(block));
+  const size_t             cells = 5;
+  const auto               threader = itk::dmr::test::Threader(4, 4);
+  itk::dmr::DiscreteCVT<D> threaded, serial;
+  threaded.SetDensity(grid, density.data(), threader);
+  serial.SetDensity(grid, density.data(), nullptr);
+  std::vector<double> mass, centroid, serialMass, serialCentroid;
+  const auto          blocks = threaded.ContractionBlockSums(cells, block, mass, centroid);
+  serial.ContractionBlockSums(cells, block, serialMass, serialCentroid);
+  EXPECT_EQ(mass, serialMass);
+  EXPECT_EQ(centroid, serialCentroid);
+  ASSERT_EQ(blocks.size, block);
+  size_t numberOfBlocks = 1;
+  for (unsigned int k = 0; k < D; ++k)
+  {
+    EXPECT_EQ(blocks.perAxis[k], (grid.size[k] + block - 1) / block);
+    numberOfBlocks *= blocks.perAxis[k];
+  }
+  std::vector<double> referenceMass(numberOfBlocks, 0.0), moment(numberOfBlocks * D, 0.0);
+  for (size_t p = 0; p < grid.numberOfPixels; ++p)
+  {
+    const auto idx = grid.Index(p);
+    size_t     b = 0, stride = 1;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      b += (static_cast<size_t>(idx[k]) / block) * stride;
+      stride *= blocks.perAxis[k];
+    }
+    double x[D];
+    threaded.Position(p, x);
+    referenceMass[b] += density[p];
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      moment[b * D + k] += density[p] * x[k];
+    }
+  }
+  ASSERT_EQ(mass.size(), numberOfBlocks);
+  ASSERT_EQ(centroid.size(), numberOfBlocks * D);
+  for (size_t b = 0; b < numberOfBlocks; ++b)
+  {
+    EXPECT_NEAR(mass[b], referenceMass[b], 1e-12 * referenceMass[b]) << "block " << b;
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      EXPECT_NEAR(centroid[b * D + k], moment[b * D + k] / referenceMass[b], 1e-9) << "block " << b << ", axis " << k;
+    }
+  }
+}
+
+TEST(DiscreteCVT, ContractionBlockSumsAreEveryBlocksMassAndCentroid)
+{
+  const itk::dmr::Grid<2> grid2(std::array<size_t, 2>{ 23, 19 }, std::array<double, 2>{ 1.0, 1.7 });
+  const itk::dmr::Grid<3> grid3(std::array<size_t, 3>{ 9, 8, 7 }, std::array<double, 3>{ 1.0, 1.0, 2.0 });
+  const auto              density2 = itk::dmr::test::RandomDensity(grid2.numberOfPixels, 5);
+  const auto              density3 = itk::dmr::test::RandomDensity(grid3.numberOfPixels, 6);
+  for (const unsigned int block : { 1u, 2u, 4u })
+  {
+    ExpectBlockSumsOfEveryBlock<2>(grid2, density2, block);
+    ExpectBlockSumsOfEveryBlock<3>(grid3, density3, block);
+  }
+}
+
 // a cell of zero mass has no centroid (the contraction's costs would be NaN): such a density is refused up front
 TEST(DiscreteCVT, DensityThatIsNotPositiveAndFiniteThrows)
 {

@@ -94,7 +94,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
                                               "ForceGradient",
                                               "MaximumStepHalvings",
                                               "ComputeInverse",
-                                              "GPUOrderSolve" }));
+                                              "GPUOrderSolve",
+                                              "AlwaysContractOnHost" }));
   DMR_EXPECT_SET_GET(method, MaximumStepHalvings, 2u);
   DMR_EXPECT_SET_GET(method, ForceGradient, itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
   DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);
@@ -115,7 +116,10 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
   DMR_EXPECT_SET_GET(method, ComputeInverse, true);
   EXPECT_TRUE(method->GetGPUOrderSolve()); // the default
   DMR_EXPECT_SET_GET(method, GPUOrderSolve, false);
-  method->SetSolverTolerance(1.0); // clamped to the loosest tolerance allowed
+  EXPECT_FALSE(method->GetAlwaysContractOnHost()); // the default
+  DMR_EXPECT_SET_GET(method, AlwaysContractOnHost, true);
+  EXPECT_FALSE(method->GetContractedOnHost()); // no run yet
+  method->SetSolverTolerance(1.0);             // clamped to the loosest tolerance allowed
   EXPECT_EQ(method->GetSolverTolerance(), 1e-2);
   method->SetNumberOfNodes(1); // clamped to the 4 nodes a mesh needs at least
   EXPECT_EQ(method->GetNumberOfNodes(), 4u);

@@ -268,47 +268,46 @@ public:
   void
   ContractionInitialize(size_t numberOfCells, unsigned int blockSize)
   {
-    const auto                  blocks = ContractionBlocks(m_Grid.size, numberOfCells, blockSize);
-    const std::array<size_t, D> nb = blocks.perAxis;
-    blockSize = blocks.size;
-    std::array<size_t, D> bstride;
-    size_t                numberOfBlocks = 1;
+    std::vector<double> masses, centroids;
+    const auto          blocks = ContractionBlockSums(numberOfCells, blockSize, masses, centroids);
+    size_t              next = 0;
+    const auto          blockLabel =
+      ContractBlocks(blocks.perAxis, masses.data(), centroids.data(), numberOfCells, m_Checkpoint, next);
+    ParallelForChunkIds(m_Threader, NumberOfBlockSlabs(blocks), [&](size_t slab) {
+      ForEachBlockRun(blocks, slab, [&](size_t b, const IndexType &, size_t rowStart, size_t i, size_t end) {
+        std::fill(m_Labels.begin() + rowStart + i, m_Labels.begin() + rowStart + end, blockLabel[b]);
+      });
+    });
+    RecomputeStatistics(next);
+  }
+
+  /** The contraction's start (see ContractionInitialize): the blocks of ContractionBlocks(grid size, numberOfCells,
+   * blockSize), and the mass and centroid (grid frame, D interleaved) of each block of the current density, in block
+   * order. ContractionInitialize contracts these sums; the CUDA back-end's block sums (CVTSwapOptimizer::
+   * ContractionBlockSums) are the same, bit for bit. */
+  ContractionBlockGrid
+  ContractionBlockSums(size_t                numberOfCells,
+                       unsigned int          blockSize,
+                       std::vector<double> & masses,
+                       std::vector<double> & centroids) const
+  {
+    const auto blocks = ContractionBlocks(m_Grid.size, numberOfCells, blockSize);
+    size_t     numberOfBlocks = 1;
     for (unsigned int k = 0; k < D; ++k)
     {
-      bstride[k] = numberOfBlocks;
-      numberOfBlocks *= nb[k];
+      numberOfBlocks *= blocks.perAxis[k];
     }
-    // block masses and centroids (first moments until the blocks are summed)
-    std::vector<double> masses(numberOfBlocks, 0.0), centroids(numberOfBlocks * D, 0.0);
-
-    // Block masses and centroids. The pixels are visited row by row (a row: the size[0] pixels along axis 0, in runs
-    // of one block each), with no division per pixel. A slab (blockSize pixel planes across the last axis) holds
-    // whole rows and whole blocks, so the slabs are summed in parallel; within a block the pixels are added in
-    // increasing order as by a plain scan, so the sums are the same, bit for bit, whatever the threads.
-    const size_t rowLength = m_Grid.size[0];
-    const size_t numberOfSlabs = D > 1 ? nb[D - 1] : 1;
-    const size_t slabBlocks = D > 1 ? bstride[D - 1] : numberOfBlocks;
-    auto         forEachRun = [&](size_t slab, auto && body) {
-      const size_t planeSize = D > 1 ? m_Grid.stride[D - 1] : 0;
-      const size_t begin = D > 1 ? slab * blockSize * planeSize : 0;
-      const size_t end =
-        D > 1 ? std::min(m_Grid.size[D - 1], (slab + 1) * blockSize) * planeSize : m_Grid.numberOfPixels;
-      for (size_t rowStart = begin; rowStart < end; rowStart += rowLength)
-      {
-        const IndexType idx = m_Grid.Index(rowStart);
-        size_t          b = 0;
-        for (unsigned int k = 1; k < D; ++k)
-        {
-          b += (static_cast<size_t>(idx[k]) / blockSize) * bstride[k];
-        }
-        for (size_t i = 0; i < rowLength; i += blockSize, ++b)
-        {
-          body(b, idx, rowStart, i, std::min(rowLength, i + blockSize)); // block b: pixels rowStart + [i, end)
-        }
-      }
-    };
+    // first moments until the blocks are summed
+    masses.assign(numberOfBlocks, 0.0);
+    centroids.assign(numberOfBlocks * D, 0.0);
+    // The pixels are visited row by row (a row: the size[0] pixels along axis 0, in runs of one block each), with no
+    // division per pixel. A slab (blockSize pixel planes across the last axis) holds whole rows and whole blocks, so
+    // the slabs are summed in parallel; within a block the pixels are added in increasing order as by a plain scan,
+    // so the sums are the same, bit for bit, whatever the threads.
+    const size_t numberOfSlabs = NumberOfBlockSlabs(blocks);
+    const size_t slabBlocks = numberOfBlocks / numberOfSlabs;
     ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
-      forEachRun(slab, [&](size_t b, const IndexType & idx, size_t rowStart, size_t i, size_t end) {
+      ForEachBlockRun(blocks, slab, [&](size_t b, const IndexType & idx, size_t rowStart, size_t i, size_t end) {
         double x[D];
         Position(idx, x);
         double mass = masses[b];
@@ -326,14 +325,7 @@ public:
         }
       }
     });
-    size_t     next = 0;
-    const auto blockLabel = ContractBlocks(nb, masses.data(), centroids.data(), numberOfCells, m_Checkpoint, next);
-    ParallelForChunkIds(m_Threader, numberOfSlabs, [&](size_t slab) {
-      forEachRun(slab, [&](size_t b, const IndexType &, size_t rowStart, size_t i, size_t end) {
-        std::fill(m_Labels.begin() + rowStart + i, m_Labels.begin() + rowStart + end, blockLabel[b]);
-      });
-    });
-    RecomputeStatistics(next);
+    return blocks;
   }
 
   /** The merges of the greedy least-cost pair contraction (see ContractionInitialize) on a grid of nb blocks per axis
@@ -888,6 +880,40 @@ public:
   }
 
 private:
+  /** The slabs of the contraction's blocks: blocks.size pixel planes across the last axis each (one slab in 1D). */
+  static size_t
+  NumberOfBlockSlabs(const ContractionBlockGrid & blocks)
+  {
+    return D > 1 ? blocks.perAxis[D - 1] : 1;
+  }
+
+  /** body(block, index of the row's first pixel, row start, i, end) for every run of a row of the slab that lies in one
+   * block (pixels rowStart + [i, end)), row by row in pixel order. */
+  template <typename TBody>
+  void
+  ForEachBlockRun(const ContractionBlockGrid & blocks, size_t slab, TBody && body) const
+  {
+    const size_t blockSize = blocks.size;
+    const size_t rowLength = m_Grid.size[0];
+    const size_t planeSize = D > 1 ? m_Grid.stride[D - 1] : 0;
+    const size_t begin = D > 1 ? slab * blockSize * planeSize : 0;
+    const size_t end = D > 1 ? std::min(m_Grid.size[D - 1], (slab + 1) * blockSize) * planeSize : m_Grid.numberOfPixels;
+    for (size_t rowStart = begin; rowStart < end; rowStart += rowLength)
+    {
+      const IndexType idx = m_Grid.Index(rowStart);
+      size_t          b = 0, blockStride = 1;
+      for (unsigned int k = 1; k < D; ++k)
+      {
+        blockStride *= blocks.perAxis[k - 1];
+        b += (static_cast<size_t>(idx[k]) / blockSize) * blockStride;
+      }
+      for (size_t i = 0; i < rowLength; i += blockSize, ++b)
+      {
+        body(b, idx, rowStart, i, std::min(rowLength, i + blockSize));
+      }
+    }
+  }
+
   static constexpr unsigned int NeighbourhoodSize = Neighbourhood<D>::Size;
 
   static constexpr unsigned int NumberOfColours = 1u << D;

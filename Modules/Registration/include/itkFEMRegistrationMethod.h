@@ -258,6 +258,20 @@ public:
    * 0 (default): max(1000, 4 x free degrees of freedom). */
   itkSetMacro(DeviceSolverMaximumIterations, SizeValueType);
   itkGetConstMacro(DeviceSolverMaximumIterations, SizeValueType);
+  /** CUDA back-end, dynamic mesh, no initial displacement field, images of at most HostContractionMaximumPixels
+   * pixels: iteration 1's contraction runs on the CPU ahead of the device (the CPU path's density at the identity,
+   * its block sums and the merges) while the device's context is still being created, which reading small inputs
+   * does not cover. At iteration 1 the device's block sums of its own density must equal the host's bit for bit for
+   * the host's merges to be taken; otherwise the merges run again on the device's sums, as they do without this. The
+   * result is the same either way. AlwaysContractOnHost (default off; for tests and benchmarks): also when the
+   * context is ready. */
+  itkSetMacro(AlwaysContractOnHost, bool);
+  itkGetConstMacro(AlwaysContractOnHost, bool);
+  itkBooleanMacro(AlwaysContractOnHost);
+  /** Whether the last run's iteration 1 took the contraction made on the CPU ahead of the device (see
+   * AlwaysContractOnHost). */
+  itkGetConstMacro(ContractedOnHost, bool);
+  static constexpr SizeValueType HostContractionMaximumPixels = SizeValueType{ 1 } << 20;
   /** Device memory the CUDA back-end's buffers held at their peak (bytes; 0 on the CPU path): the registration
    * context's largest allocation plus the CVT optimiser's and the label summary's buffers, which are held throughout
    * the iterations. The CUDA context and the driver's own allocations are not included. */
@@ -456,6 +470,8 @@ private:
   SizeValueType     m_DirectSolverMaximumDegreesOfFreedom{ 300 };
   bool              m_GPUOrderSolve{ true };
   SizeValueType     m_DeviceSolverMaximumIterations{ 0 };
+  bool              m_AlwaysContractOnHost{ false };
+  bool              m_ContractedOnHost{ false };
   bool              m_ComputeInverse{ false };
 
   double                       m_Beta{ 0.0 }; // in the density filter's units; GetBeta() converts

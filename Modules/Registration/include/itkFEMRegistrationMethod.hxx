@@ -974,6 +974,51 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
       }
     });
   }
+  // the merges of a contraction report progress and stop on AbortGenerateData, as the CPU path's CVT filter does
+  auto contractionCheckpoint = [this](double) {
+    this->UpdateProgress(this->GetProgress());
+    if (this->GetAbortGenerateData())
+    {
+      ProcessAborted aborted(__FILE__, __LINE__);
+      aborted.SetDescription("FEMRegistrationMethod: AbortGenerateData was set (contraction)");
+      throw aborted;
+    }
+  };
+  // Iteration 1's contraction on the CPU while the device's context is still being created (AlwaysContractOnHost):
+  // the CPU path's density at the identity, from a density filter of its own (this one's incomplete pyramids are the
+  // device's), its block sums and their merges. Iteration 1 takes these merges only if the device's block sums are
+  // the same, bit for bit.
+  struct
+  {
+    std::vector<double>  mass, centroid;
+    std::vector<int32_t> blockLabel;
+  } host;
+  m_ContractedOnHost = false;
+  if (m_MeshMode == MeshModeEnum::Dynamic && !this->GetInitialDisplacementField() &&
+      n <= HostContractionMaximumPixels &&
+      (m_AlwaysContractOnHost ||
+       (deviceContext.valid() && deviceContext.wait_for(std::chrono::seconds(0)) != std::future_status::ready)))
+  {
+    const auto t1 = Clock::now();
+    auto       density = DensityFilterType::New();
+    density->SetFixedImage(fixed);
+    density->SetMovingImage(this->GetMovingImage());
+    density->SetFixedMask(this->GetFixedMask());
+    density->ComputeForceFieldOff();
+    density->SetNumberOfLevels(m_NumberOfLevels);
+    density->SetAlphaFactor(m_AlphaFactor);
+    density->SetForceGradient(m_ForceGradient);
+    density->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+    density->Update();
+    dmr::DiscreteCVT<D> core;
+    core.SetDensity(grid, density->GetOutput()->GetBufferPointer(), threader);
+    const auto blocks =
+      core.ContractionBlockSums(m_NumberOfNodes, m_CVTFilter->GetBlockSize(), host.mass, host.centroid);
+    size_t numberOfLabels = 0;
+    host.blockLabel = dmr::DiscreteCVT<D>::ContractBlocks(
+      blocks.perAxis, host.mass.data(), host.centroid.data(), m_NumberOfNodes, contractionCheckpoint, numberOfLabels);
+    m_Timing.initialTessellation += seconds(t1, Clock::now());
+  }
   if (deviceContext.valid())
   {
     deviceContext.wait();
@@ -1094,23 +1139,23 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
           dmr::DiscreteCVT<D>::ContractionBlocks(grid.size, m_NumberOfNodes, m_CVTFilter->GetBlockSize());
         std::vector<double> blockMass, blockCentroid;
         dmr::ThrowOnError(cvt.ContractionBlockSums(blocks.size, blockMass, blockCentroid), "contraction");
-        size_t     numberOfLabels = 0;
-        const auto blockLabel = dmr::DiscreteCVT<D>::ContractBlocks(
-          blocks.perAxis,
-          blockMass.data(),
-          blockCentroid.data(),
-          m_NumberOfNodes,
-          [this](double) {
-            // as the CPU path's CVT filter: progress within the merges, and a stop on AbortGenerateData
-            this->UpdateProgress(this->GetProgress());
-            if (this->GetAbortGenerateData())
-            {
-              ProcessAborted aborted(__FILE__, __LINE__);
-              aborted.SetDescription("FEMRegistrationMethod: AbortGenerateData was set (contraction)");
-              throw aborted;
-            }
-          },
-          numberOfLabels);
+        std::vector<int32_t> blockLabel;
+        if (it == 1 && !host.blockLabel.empty() && blockMass == host.mass && blockCentroid == host.centroid)
+        {
+          blockLabel.swap(host.blockLabel); // the merges of these very sums, made while the device started
+          m_ContractedOnHost = true;
+        }
+        else
+        {
+          size_t numberOfLabels = 0;
+          blockLabel = dmr::DiscreteCVT<D>::ContractBlocks(blocks.perAxis,
+                                                           blockMass.data(),
+                                                           blockCentroid.data(),
+                                                           m_NumberOfNodes,
+                                                           contractionCheckpoint,
+                                                           numberOfLabels);
+        }
+        host = {};
         dmr::ThrowOnError(cvt.SetBlockLabels(blocks.size, blockLabel.data(), m_NumberOfNodes), "CVT labels");
         m_Timing.initialTessellation += seconds(t0, Clock::now());
       }
@@ -1325,6 +1370,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DeviceUsedAtPeakBytes: " << m_DeviceUsedAtPeakBytes << std::endl;
   os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
   os << indent << "GPUOrderSolve: " << (m_GPUOrderSolve ? "true" : "false") << std::endl;
+  os << indent << "AlwaysContractOnHost: " << (m_AlwaysContractOnHost ? "true" : "false") << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "ComputeInverse: " << m_ComputeInverse << std::endl;
