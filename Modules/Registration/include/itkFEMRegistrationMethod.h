@@ -258,13 +258,13 @@ public:
    * 0 (default): max(1000, 4 x free degrees of freedom). */
   itkSetMacro(DeviceSolverMaximumIterations, SizeValueType);
   itkGetConstMacro(DeviceSolverMaximumIterations, SizeValueType);
-  /** CUDA back-end, dynamic mesh, no initial displacement field, images of at most HostContractionMaximumPixels
-   * pixels: iteration 1's contraction runs on the CPU ahead of the device (the CPU path's density at the identity,
-   * its block sums and the merges) while the device's context is still being created, which reading small inputs
-   * does not cover. At iteration 1 the device's block sums of its own density must equal the host's bit for bit for
-   * the host's merges to be taken; otherwise the merges run again on the device's sums, as they do without this. The
-   * result is the same either way. AlwaysContractOnHost (default off; for tests and benchmarks): also when the
-   * context is ready. */
+  /** CUDA back-end, dynamic mesh, no initial displacement field, fixed and moving images of at most
+   * HostContractionMaximumPixels pixels each: iteration 1's contraction runs on the CPU ahead of the device (the CPU
+   * path's density at the identity, its block sums and the merges) while the device's context is still being created,
+   * which reading small inputs does not cover. At iteration 1 the device's block sums of its own density must equal the
+   * host's bit for bit for the host's merges to be taken; otherwise the merges run again on the device's sums, as they
+   * do without this. The result is the same either way. AlwaysContractOnHost (default off; for tests and benchmarks):
+   * also when the context is ready. */
   itkSetMacro(AlwaysContractOnHost, bool);
   itkGetConstMacro(AlwaysContractOnHost, bool);
   itkBooleanMacro(AlwaysContractOnHost);

@@ -996,6 +996,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   m_ContractedOnHost = false;
   if (m_MeshMode == MeshModeEnum::Dynamic && !this->GetInitialDisplacementField() &&
       n <= HostContractionMaximumPixels &&
+      this->GetMovingImage()->GetLargestPossibleRegion().GetNumberOfPixels() <= HostContractionMaximumPixels &&
       (m_AlwaysContractOnHost ||
        (deviceContext.valid() && deviceContext.wait_for(std::chrono::seconds(0)) != std::future_status::ready)))
   {
