@@ -167,6 +167,10 @@ public:
     std::vector<float> fixed;
     std::vector<float> moving;
     std::vector<float> movingGradient; // grid frame of the fixed image, per mm, D interleaved
+    // incomplete pyramid (GetPyramid(false)), level 0: the input's own buffer where the input is a float image buffered
+    // whole and not scaled (fixed or moving is then empty); valid while the input is
+    const float * fixedInput{ nullptr };
+    const float * movingInput{ nullptr };
     // moving grid frame -> fixed grid frame (the rotation the gradient is taken through; the same for every level)
     double R[ImageDimension][ImageDimension];
     // incomplete pyramid (GetPyramid(false)), levels above 0: how to build fixed and moving from level 0's images

@@ -421,10 +421,23 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
         f->SetRegions(fixed->GetLargestPossibleRegion());
         m->CopyInformation(moving);
         m->SetRegions(moving->GetLargestPossibleRegion());
-        dmr::CopyToFloat(fixed, L.fixed, this->GetMultiThreader()); // the cast's floats (static_cast), no cast image
-        dmr::CopyToFloat(moving, L.moving, this->GetMultiThreader());
-        applyScale(L.fixed.data(), L.fixed.size());
-        applyScale(L.moving.data(), L.moving.size());
+        // the cast's floats (static_cast), no cast image; a float input buffered whole and not scaled is its own
+        // level 0 (no copy)
+        auto level0 = [&](const auto * image, std::vector<float> & copy, const float *& input) {
+          using PixelType = typename std::remove_pointer_t<std::remove_cv_t<decltype(image)>>::PixelType;
+          if constexpr (std::is_same_v<PixelType, float>)
+          {
+            if (scale == 1.0f && image->GetBufferedRegion() == image->GetLargestPossibleRegion())
+            {
+              input = image->GetBufferPointer();
+              return;
+            }
+          }
+          dmr::CopyToFloat(image, copy, this->GetMultiThreader());
+          applyScale(copy.data(), copy.size());
+        };
+        level0(fixed, L.fixed, L.fixedInput);
+        level0(moving, L.moving, L.movingInput);
       }
     }
     else

@@ -874,8 +874,8 @@ PyramidLevelViews(const std::vector<TLevel> & pyramid, const TDirection & fixedD
       }
     }
     // an incomplete pyramid (DensityFieldFilter::GetPyramid(false)): the device builds what is not here from the plans
-    v.fixed = L.fixed.empty() ? nullptr : L.fixed.data();
-    v.moving = L.moving.empty() ? nullptr : L.moving.data();
+    v.fixed = L.fixed.empty() ? L.fixedInput : L.fixed.data();
+    v.moving = L.moving.empty() ? L.movingInput : L.moving.data();
     v.movingGradient = L.movingGradient.empty() ? nullptr : L.movingGradient.data();
     auto shrinkView = [](const auto & plan, cuda::ShrinkView & view) {
       for (unsigned int k = 0; k < D && !plan.kept[k].empty(); ++k)
@@ -960,20 +960,17 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   // the pyramids: level 0's images converted to float on the CPU and uploaded, the coarser levels and the moving
   // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids), while
   // the device's context is still being created (GenerateData)
-  auto                 t0 = Clock::now();
-  const auto           views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
-  std::vector<uint8_t> mask;
-  if (const auto * maskImage = this->GetFixedMask())
+  auto       t0 = Clock::now();
+  const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
+  // the mask as it is (on the fixed grid, VerifyInputInformation): the device reads it as the CPU path does, non-zero
+  // inside
+  static_assert(sizeof(typename MaskImageType::PixelType) == sizeof(uint8_t), "the device reads one byte per pixel");
+  const auto * maskImage = this->GetFixedMask();
+  if (maskImage && maskImage->GetBufferedRegion() != maskImage->GetLargestPossibleRegion())
   {
-    mask.resize(n); // on the fixed grid (VerifyInputInformation)
-    const auto * m = maskImage->GetBufferPointer();
-    dmr::ParallelForChunks(threader, n, [&](size_t b, size_t e) {
-      for (size_t p = b; p < e; ++p)
-      {
-        mask[p] = m[p] != 0 ? 1 : 0;
-      }
-    });
+    itkExceptionMacro("the fixed mask is not buffered whole");
   }
+  const auto * mask = maskImage ? reinterpret_cast<const uint8_t *>(maskImage->GetBufferPointer()) : nullptr;
   // the merges of a contraction report progress and stop on AbortGenerateData, as the CPU path's CVT filter does
   auto contractionCheckpoint = [this](double) {
     this->UpdateProgress(this->GetProgress());
@@ -1025,10 +1022,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     deviceContext.wait();
   }
   dmr::cuda::RegistrationContext context;
-  dmr::ThrowOnError(
-    context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask.empty() ? nullptr : mask.data()),
-    "initialisation");
-  std::vector<uint8_t>().swap(mask);
+  dmr::ThrowOnError(context.Initialize(D, grid.size.data(), grid.spacing.data(), views, mask), "initialisation");
   if (this->GetInitialDisplacementField())
   {
     std::vector<float> w0(n * D);
