@@ -313,6 +313,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
     }
   }
   m_DeviceBytes = 0;
+  m_ContractedOnHost = false;
   m_DevicePeakBytes = 0;
   m_DeviceUsedAtPeakBytes = 0;
   if (m_Backend != BackendEnum::CPU && dmr::cuda::DeviceAvailable())
@@ -957,9 +958,9 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   DisplacementFieldType * field = this->GetDisplacementField();
   this->ConfigureStages();
 
-  // the pyramids: level 0's images converted to float on the CPU and uploaded, the coarser levels and the moving
-  // gradients built on the device from the density filter's plans (the same floats as the CPU path's pyramids), while
-  // the device's context is still being created (GenerateData)
+  // the pyramids: level 0's images uploaded (float inputs from their own buffers, others converted to float on the
+  // CPU), the coarser levels and the moving gradients built on the device from the density filter's plans (the same
+  // floats as the CPU path's pyramids), while the device's context is still being created (GenerateData)
   auto       t0 = Clock::now();
   const auto views = dmr::PyramidLevelViews<D>(m_DensityFilter->GetPyramid(false), fixed->GetDirection(), n);
   // the mask as it is (on the fixed grid, VerifyInputInformation): the device reads it as the CPU path does, non-zero
@@ -990,7 +991,6 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
     std::vector<double>  mass, centroid;
     std::vector<int32_t> blockLabel;
   } host;
-  m_ContractedOnHost = false;
   if (m_MeshMode == MeshModeEnum::Dynamic && !this->GetInitialDisplacementField() &&
       n <= HostContractionMaximumPixels &&
       this->GetMovingImage()->GetLargestPossibleRegion().GetNumberOfPixels() <= HostContractionMaximumPixels &&
