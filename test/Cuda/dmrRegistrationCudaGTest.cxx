@@ -887,6 +887,12 @@ HostContractionGivesTheSameRun(unsigned int nodes, unsigned int iterations, unsi
   const size_t bytes = a->GetLargestPossibleRegion().GetNumberOfPixels() * sizeof(a->GetBufferPointer()[0]);
   EXPECT_EQ(std::memcmp(a->GetBufferPointer(), b->GetBufferPointer(), bytes), 0) << "the fields differ";
   EXPECT_LT(ahead->GetFinalSSD(), 0.8 * ahead->GetHistory().front().ssd); // it registered
+  // the same method run again on the CPU does not report the earlier run's contraction
+  ahead->SetBackend(Backend::CPU);
+  ahead->SetNumberOfIterations(1);
+  ahead->Update();
+  ASSERT_EQ(ahead->GetBackendUsed(), Backend::CPU);
+  EXPECT_FALSE(ahead->GetContractedOnHost());
 }
 } // namespace
 
