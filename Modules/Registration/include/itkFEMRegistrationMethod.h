@@ -397,6 +397,10 @@ private:
   /** Both back-ends: zero output field, the stages' settings, history/timing/beta reset (needs m_BackendUsed). */
   void
   ConfigureStages();
+  /** Gives a density filter the registration's inputs and settings, all but the displacement field (ConfigureStages,
+   * and the CUDA path's contraction on the host ahead of the device). */
+  void
+  ConfigureDensityFilter(DensityFilterType & filter) const;
   /** nodalU = K^-1 nodalForce by solve() (timed as FEM solve); while beta is unset (the first iteration) sets it so
    * that beta R / D = EnergyRatio. False when there is no force to register with (beta cannot be set) or when a
    * dynamic mesh after the first has no free node; throws when the first mesh has none. */

@@ -548,6 +548,20 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateData()
 
 template <typename TF, typename TM, typename TD>
 void
+FEMRegistrationMethod<TF, TM, TD>::ConfigureDensityFilter(DensityFilterType & filter) const
+{
+  filter.SetFixedImage(this->GetFixedImage());
+  filter.SetMovingImage(this->GetMovingImage());
+  filter.SetFixedMask(this->GetFixedMask());
+  filter.ComputeForceFieldOff(); // the registration reads the grid-frame force
+  filter.SetNumberOfLevels(m_NumberOfLevels);
+  filter.SetAlphaFactor(m_AlphaFactor);
+  filter.SetForceGradient(m_ForceGradient);
+  filter.SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+}
+
+template <typename TF, typename TM, typename TD>
+void
 FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
 {
   // the output field starts at 0; the CPU path's density filter reads it every iteration, the CUDA path keeps w on
@@ -565,15 +579,8 @@ FEMRegistrationMethod<TF, TM, TD>::ConfigureStages()
                            [buffer, &zero](size_t b, size_t e) { std::fill(buffer + b, buffer + e, zero); });
   }
 
-  m_DensityFilter->SetFixedImage(this->GetFixedImage());
-  m_DensityFilter->SetMovingImage(this->GetMovingImage());
+  this->ConfigureDensityFilter(*m_DensityFilter);
   m_DensityFilter->SetDisplacementField(cuda ? nullptr : field);
-  m_DensityFilter->SetFixedMask(this->GetFixedMask());
-  m_DensityFilter->ComputeForceFieldOff(); // the registration reads the grid-frame force
-  m_DensityFilter->SetNumberOfLevels(m_NumberOfLevels);
-  m_DensityFilter->SetAlphaFactor(m_AlphaFactor);
-  m_DensityFilter->SetForceGradient(m_ForceGradient);
-  m_DensityFilter->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
   m_CVTFilter->SetNumberOfCells(m_NumberOfNodes);
   m_CVTFilter->SetEpsilon(m_CVTEpsilon);
   m_CVTFilter->SetMaximumNumberOfSweeps(m_MaximumNumberOfSweeps);
@@ -999,14 +1006,7 @@ FEMRegistrationMethod<TF, TM, TD>::GenerateDataCUDA(std::chrono::steady_clock::t
   {
     const auto t1 = Clock::now();
     auto       density = DensityFilterType::New();
-    density->SetFixedImage(fixed);
-    density->SetMovingImage(this->GetMovingImage());
-    density->SetFixedMask(this->GetFixedMask());
-    density->ComputeForceFieldOff();
-    density->SetNumberOfLevels(m_NumberOfLevels);
-    density->SetAlphaFactor(m_AlphaFactor);
-    density->SetForceGradient(m_ForceGradient);
-    density->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+    this->ConfigureDensityFilter(*density); // as the registration's own, at the identity (no displacement field)
     density->Update();
     dmr::DiscreteCVT<D> core;
     core.SetDensity(grid, density->GetOutput()->GetBufferPointer(), threader);
