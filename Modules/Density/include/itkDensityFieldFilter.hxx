@@ -424,7 +424,7 @@ DensityFieldFilter<TF, TM, TD, TO>::BuildPyramids(bool complete)
         // the cast's floats (static_cast), no cast image; a float input buffered whole and not scaled is its own
         // level 0 (no copy)
         auto level0 = [&](const auto * image, std::vector<float> & copy, const float *& input) {
-          using PixelType = typename std::remove_pointer_t<std::remove_cv_t<decltype(image)>>::PixelType;
+          using PixelType = typename std::decay_t<decltype(*image)>::PixelType;
           if constexpr (std::is_same_v<PixelType, float>)
           {
             if (scale == 1.0f && image->GetBufferedRegion() == image->GetLargestPossibleRegion())
