@@ -32,6 +32,7 @@
 #include <system_error>
 #include <thread>
 #include <unistd.h>
+#include <utility>
 #include <condition_variable>
 #include <mutex>
 
@@ -851,7 +852,9 @@ RidgeDensity(const itk::dmr::Grid<D> & grid, double radius, double shift, uint32
 }
 
 /** Runs Optimize(0, sweepsPerCall) callCount times from the same labels in every sweep mode; expects the active-list
- * modes to give the full scan's labels, energy and statistics exactly. Returns the full scan's totals. */
+ * modes to give the full scan's labels, energy and statistics exactly. The gather modes run twice more with chunks of
+ * 16 gather-list entries, so that their parallel gather (GatherChangedCells in chunks, with atomic Queued bits) runs
+ * on these small grids too. Returns the full scan's totals. */
 template <unsigned int D>
 typename itk::dmr::DiscreteCVT<D>::OptimizeResult
 ExpectModesAgree(const itk::dmr::Grid<D> &    grid,
@@ -864,15 +867,22 @@ ExpectModesAgree(const itk::dmr::Grid<D> &    grid,
 {
   using CVTType = itk::dmr::DiscreteCVT<D>;
   using ModeType = typename CVTType::SweepMode;
-  const ModeType modes[] = { ModeType::FullScan, ModeType::Auto, ModeType::ActiveScan, ModeType::ActiveGather };
+  const std::pair<ModeType, size_t>  modes[] = { { ModeType::FullScan, 0 },      { ModeType::Auto, 0 },
+                                                 { ModeType::ActiveScan, 0 },    { ModeType::ActiveGather, 0 },
+                                                 { ModeType::ActiveGather, 16 }, { ModeType::Auto, 16 } };
   std::vector<std::vector<int32_t>>  labels;
   std::vector<std::vector<double>>   energies;
   std::vector<std::array<size_t, 3>> counts;
-  for (const ModeType mode : modes)
+  for (const auto & [mode, chunkWork] : modes)
   {
     CVTType cvt;
     cvt.SetSweepMode(mode);
     EXPECT_EQ(cvt.GetSweepMode(), mode);
+    if (chunkWork > 0)
+    {
+      cvt.SetGatherChunkWork(chunkWork);
+      EXPECT_EQ(cvt.GetGatherChunkWork(), chunkWork);
+    }
     cvt.SetDensity(grid, density.data(), threader);
     cvt.SetLabels(start.data(), numberOfCells);
     std::vector<double>   energy;

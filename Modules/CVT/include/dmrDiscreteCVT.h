@@ -223,6 +223,20 @@ public:
     return m_SweepMode;
   }
 
+  /** The gather mode's parallel step (GatherChangedCells) splits the changed cells into chunks of at least this many
+   * gather-list entries (default GatherChunkWork; at least 1). Smaller values are for tests, which then exercise the
+   * parallel gather on small grids; the labels are the same whatever the value. */
+  void
+  SetGatherChunkWork(size_t work)
+  {
+    m_GatherChunkWork = std::max<size_t>(1, work);
+  }
+  size_t
+  GetGatherChunkWork() const
+  {
+    return m_GatherChunkWork;
+  }
+
   void
   Position(size_t p, double * x) const
   {
@@ -918,6 +932,9 @@ private:
 
   static constexpr unsigned int NumberOfColours = 1u << D;
 
+  /** The least number of gather-list entries per chunk of a parallel GatherChangedCells. */
+  static constexpr size_t GatherChunkWork = 32768;
+
   /** A cluster's least pair in the contraction (see ContractionInitialize), ordered like the merges: by cost, then by
    * the lower and the higher id of the pair. The lowest bit of pair tells which of the two clusters holds the key,
    * so that the two holders of one pair have distinct keys and the order of the heap's keys is total. */
@@ -1474,20 +1491,93 @@ private:
 
   /** Gather mode, step 1: queue the pixels of the colour that a cell change of the window may affect: the cell's
    * own boundary pixels, and the pixels of other cells face-adjacent to its boundary pixels (found from the
-   * cell's gather lists of the colours that differ in one axis). */
+   * cell's gather lists of the colours that differ in one axis). With enough list entries to read, the changed cells
+   * are split into chunks of about equal work (SetGatherChunkWork entries or more each), gathered in parallel; a
+   * pixel's Queued bit is then set atomically, so each pixel is queued once, by the chunk that sets it. The queue holds
+   * the same pixels either way, in another order, which nothing depends on: EvaluateQueue's proposals are sorted by
+   * pixel, and each evaluation writes only its own pixel's state. */
   void
   GatherChangedCells(unsigned int colour)
   {
-    auto & queue = m_Queue[colour];
-    for (const LabelType cell : m_ChangedCells)
+    auto &       queue = m_Queue[colour];
+    const size_t nChanged = m_ChangedCells.size();
+    size_t       work = 0;
+    for (const LabelType a : m_ChangedCells)
     {
-      const size_t a = static_cast<size_t>(cell);
-      // stale and interior entries are queued too (the evaluation skips them): lists are compacted when they double
+      work += GatherWork(a, colour);
+    }
+#if defined(__GNUC__) || defined(__clang__)
+    const size_t nChunks = std::min<size_t>({ 64, nChanged, work / m_GatherChunkWork });
+#else
+    const size_t nChunks = 1;
+#endif
+    if (nChunks < 2)
+    {
+      GatherCells(colour, 0, nChanged, [&](size_t p) { Enqueue(p, queue, 0); });
+      return;
+    }
+    // chunk c takes the changed cells [m_GatherChunkStart[c], m_GatherChunkStart[c + 1]), split by their work
+    m_GatherChunkStart.assign(nChunks + 1, nChanged);
+    m_GatherChunkStart[0] = 0;
+    size_t done = 0, chunk = 1;
+    for (size_t i = 0; i < nChanged && chunk < nChunks; ++i)
+    {
+      done += GatherWork(m_ChangedCells[i], colour);
+      if (done * nChunks >= chunk * work)
+      {
+        m_GatherChunkStart[chunk++] = i + 1;
+      }
+    }
+    if (m_ChunkQueue.size() < nChunks)
+    {
+      m_ChunkQueue.resize(nChunks);
+    }
+    SweepChunks(nChunks, [&](size_t c) {
+      auto & local = m_ChunkQueue[c];
+      local.clear();
+      GatherCells(colour, m_GatherChunkStart[c], m_GatherChunkStart[c + 1], [&](size_t p) {
+#if defined(__GNUC__) || defined(__clang__)
+        if (!(__atomic_fetch_or(&m_PixelState[p], Queued, __ATOMIC_RELAXED) & Queued))
+        {
+          local.push_back(static_cast<uint32_t>(p));
+        }
+#endif
+      });
+    });
+    for (size_t c = 0; c < nChunks; ++c)
+    {
+      queue.insert(queue.end(), m_ChunkQueue[c].begin(), m_ChunkQueue[c].end());
+    }
+  }
+
+  /** The list entries that gathering changed cell a for the colour reads. */
+  size_t
+  GatherWork(LabelType a, unsigned int colour) const
+  {
+    const size_t l = static_cast<size_t>(a) * NumberOfColours;
+    size_t       work = m_CellLists[l + colour].size();
+    for (unsigned int k = 0; k < D; ++k)
+    {
+      work += m_CellLists[l + (colour ^ (1u << k))].size();
+    }
+    return work;
+  }
+
+  /** GatherChangedCells on the changed cells [begin, end): enqueue(p) for every pixel to queue (maybe more than once;
+   * stale and interior entries too, which the evaluation skips: lists are compacted when they double). */
+  template <typename TEnqueue>
+  void
+  GatherCells(unsigned int colour, size_t begin, size_t end, TEnqueue && enqueue) const
+  {
+    for (size_t i = begin; i < end; ++i)
+    {
+      const LabelType cell = m_ChangedCells[i];
+      const size_t    a = static_cast<size_t>(cell);
       for (const uint32_t p : m_CellLists[a * NumberOfColours + colour])
       {
         if (m_Labels[p] == cell)
         {
-          Enqueue(p, queue, 0);
+          enqueue(p);
         }
       }
       for (unsigned int k = 0; k < D; ++k)
@@ -1500,14 +1590,14 @@ private:
           {
             continue; // stale entry (dropped when its list is compacted)
           }
-          const int64_t i = static_cast<int64_t>((q / stride) % m_Grid.size[k]);
-          if (i > 0 && m_Labels[q - stride] != cell)
+          const int64_t j = static_cast<int64_t>((q / stride) % m_Grid.size[k]);
+          if (j > 0 && m_Labels[q - stride] != cell)
           {
-            Enqueue(q - stride, queue, 0);
+            enqueue(q - stride);
           }
-          if (i < last && m_Labels[q + stride] != cell)
+          if (j < last && m_Labels[q + stride] != cell)
           {
-            Enqueue(q + stride, queue, 0);
+            enqueue(q + stride);
           }
         }
       }
@@ -1737,6 +1827,9 @@ private:
   std::vector<std::vector<uint32_t>>                 m_CellLists; // gather lists, [cell * NumberOfColours + colour]
   std::vector<size_t>                                m_CellListCompactedSize;
   std::array<std::vector<uint32_t>, NumberOfColours> m_Queue;
+  std::vector<std::vector<uint32_t>>                 m_ChunkQueue;       // GatherChangedCells' chunks
+  std::vector<size_t>                                m_GatherChunkStart; // and their changed cells
+  size_t                                             m_GatherChunkWork{ GatherChunkWork };
   std::vector<LabelType>                             m_ChangedCells;
   std::vector<uint64_t>                              m_CellStamp;
   uint64_t                                           m_SubSweep{ 0 };
