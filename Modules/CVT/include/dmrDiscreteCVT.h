@@ -1371,20 +1371,17 @@ private:
     // the colour's previous sub-sweep proposed before its commit, which is stamped windowStart
     const uint64_t windowStart = m_SubSweep - NumberOfColours;
     const size_t   nCells = m_Mass.size();
-    size_t         gatherWork = m_Queue[colour].size();
+    size_t         listWork = 0; // the gather lists' entries of the changed cells
     m_ChangedCells.clear();
     for (size_t a = 0; a < nCells; ++a)
     {
       if (m_CellStamp[a] >= windowStart)
       {
         m_ChangedCells.push_back(static_cast<LabelType>(a));
-        gatherWork += m_CellLists[a * NumberOfColours + colour].size();
-        for (unsigned int k = 0; k < D; ++k)
-        {
-          gatherWork += m_CellLists[a * NumberOfColours + (colour ^ (1u << k))].size();
-        }
+        listWork += GatherWork(static_cast<LabelType>(a), colour);
       }
     }
+    const size_t gatherWork = m_Queue[colour].size() + listWork;
     const size_t scanWork = m_ScanList[colour].size() + m_PendingList[colour].size();
     m_Proposals.clear();
     if (m_SweepMode == SweepMode::ActiveScan || (m_SweepMode == SweepMode::Auto && gatherWork >= scanWork))
@@ -1393,7 +1390,7 @@ private:
     }
     else
     {
-      GatherChangedCells(colour);
+      GatherChangedCells(colour, listWork);
       EvaluateQueue(colour);
       std::sort(m_Proposals.begin(), m_Proposals.end(), [](const Proposal & x, const Proposal & y) {
         return x.pixel < y.pixel;
@@ -1495,17 +1492,12 @@ private:
    * are split into chunks of about equal work (SetGatherChunkWork entries or more each), gathered in parallel; a
    * pixel's Queued bit is then set atomically, so each pixel is queued once, by the chunk that sets it. The queue holds
    * the same pixels either way, in another order, which nothing depends on: EvaluateQueue's proposals are sorted by
-   * pixel, and each evaluation writes only its own pixel's state. */
+   * pixel, and each evaluation writes only its own pixel's state. work: the changed cells' GatherWork, summed. */
   void
-  GatherChangedCells(unsigned int colour)
+  GatherChangedCells(unsigned int colour, size_t work)
   {
     auto &       queue = m_Queue[colour];
     const size_t nChanged = m_ChangedCells.size();
-    size_t       work = 0;
-    for (const LabelType a : m_ChangedCells)
-    {
-      work += GatherWork(a, colour);
-    }
 #if defined(__GNUC__) || defined(__clang__)
     const size_t nChunks = std::min<size_t>({ 64, nChanged, work / m_GatherChunkWork });
 #else
