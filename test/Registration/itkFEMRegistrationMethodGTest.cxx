@@ -95,7 +95,8 @@ TEST(FEMRegistrationMethod, BasicObjectMethodsPrintAndSetGet)
                                               "MaximumStepHalvings",
                                               "ComputeInverse",
                                               "GPUOrderSolve",
-                                              "AlwaysContractOnHost" }));
+                                              "AlwaysContractOnHost",
+                                              "ContractedOnHost" }));
   DMR_EXPECT_SET_GET(method, MaximumStepHalvings, 2u);
   DMR_EXPECT_SET_GET(method, ForceGradient, itk::DynamicMeshRegistrationEnums::ForceGradient::MappedMoving);
   DMR_EXPECT_SET_GET(method, NumberOfIterations, 7u);

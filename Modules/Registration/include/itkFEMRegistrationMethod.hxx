@@ -1366,6 +1366,7 @@ FEMRegistrationMethod<TF, TM, TD>::PrintSelf(std::ostream & os, Indent indent) c
   os << indent << "DirectSolverMaximumDegreesOfFreedom: " << m_DirectSolverMaximumDegreesOfFreedom << std::endl;
   os << indent << "GPUOrderSolve: " << (m_GPUOrderSolve ? "true" : "false") << std::endl;
   os << indent << "AlwaysContractOnHost: " << (m_AlwaysContractOnHost ? "true" : "false") << std::endl;
+  os << indent << "ContractedOnHost: " << (m_ContractedOnHost ? "true" : "false") << std::endl;
   os << indent << "DeviceSolverMinimumDegreesOfFreedom: " << m_DeviceSolverMinimumDegreesOfFreedom << std::endl;
   os << indent << "DeviceSolverMaximumIterations: " << m_DeviceSolverMaximumIterations << std::endl;
   os << indent << "ComputeInverse: " << m_ComputeInverse << std::endl;
